@@ -1,0 +1,238 @@
+"""The NMPC controller: one bounded solve per sample, shifted warm start, and the fallback.
+
+Fallback (DESIGN.md section 5): when a solve fails or its budget runs out without a usable
+iterate, the controller applies the shifted previous plan (the candidate of the paper's
+recursive-feasibility proof); once that plan is used up, the steady input u_a of the last plan;
+with no plan at all, a safe input (zero clipped to the input box).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import ConfigError, InputError
+from .models import Model
+from .nlp import TrackingNlp
+from .regions import Region
+from .settings import RUNTIME_FIELDS, ControllerSettings
+
+#: IPOPT return statuses after which the solution is used as is
+SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
+#: statuses after which the last iterate may still be used if it is feasible
+BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
+
+
+@dataclass
+class StepResult:
+    """Outcome of one sample.
+
+    Attributes:
+        u: command to apply now [m].
+        states: predicted states x(0..N) [N+1, n] (x(0) the measurement).
+        inputs: predicted inputs u(0..N-1) [N, m].
+        y_a, x_a, u_a: artificial steady output [p], state [n], input [m].
+        offset_cost, avoidance_cost, tracking_cost: V_o, V_a and the stage-cost sum of the plan.
+        status: 'ok' (solved), 'truncated' (budget cut, feasible iterate used), 'fallback_shift',
+            'fallback_steady' or 'fallback_safe'.
+        solver_status: the solver's own return status.
+        iterations: solver iterations; solve_time: wall time of the solve in s.
+        budget_exhausted: True when the iteration or time budget cut the solve.
+    """
+
+    u: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    y_a: np.ndarray
+    x_a: np.ndarray
+    u_a: np.ndarray
+    offset_cost: float
+    avoidance_cost: float
+    tracking_cost: float
+    status: str
+    solver_status: str
+    iterations: int
+    solve_time: float
+    budget_exhausted: bool = False
+
+    @property
+    def is_fallback(self) -> bool:
+        return self.status.startswith("fallback")
+
+
+@dataclass
+class _Plan:
+    """The last accepted solution and how many samples ago it was computed."""
+
+    w: np.ndarray
+    inputs: np.ndarray
+    states: np.ndarray
+    y_a: np.ndarray
+    x_a: np.ndarray
+    u_a: np.ndarray
+    lam_x: np.ndarray
+    lam_g: np.ndarray
+    age: int = 0
+    costs: tuple[float, float, float] = field(default=(math.nan, math.nan, math.nan))
+
+
+def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int) -> np.ndarray:
+    """A finite float vector of exactly `size` entries, else InputError naming the problem."""
+    try:
+        arr = np.asarray(values, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected {size} numbers, got {values!r:.80}") from None
+    if arr.size != size:
+        raise InputError(f"{name}: expected {size} values, got {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name}: contains NaN or infinite values {arr.tolist()}")
+    return arr
+
+
+class NmpcController:
+    """Avoidance-aware tracking NMPC (simplified scheme, paper section IV).
+
+    The NLP is built once in the constructor; `step` only packs parameters and solves.
+    """
+
+    def __init__(self, settings: ControllerSettings | None = None, model: Model | None = None) -> None:
+        self.settings = settings or ControllerSettings()
+        self.nlp = TrackingNlp(self.settings, model)
+        self.model = self.nlp.model
+        self.nlp_builds = 1
+        self._regions: tuple[Region, ...] = ()
+        self._slots = np.zeros(self.nlp.slot_layout.size)
+        self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
+        self._plan: _Plan | None = None
+        self._input_lo = np.asarray(self.settings.input_min, float)
+        self._input_hi = np.asarray(self.settings.input_max, float)
+
+    # -- run-time changes (never rebuild) ---------------------------------------------------
+    @property
+    def regions(self) -> tuple[Region, ...]:
+        return self._regions
+
+    def set_regions(self, regions: Sequence[Region]) -> None:
+        """Replace the obstacle regions (RegionError if they do not fit the slots; nothing changes then)."""
+        slots = self.nlp.slot_layout.pack(list(regions), self.nlp.output_frame_available)
+        self._regions, self._slots = tuple(regions), slots
+
+    def set_keep_in_active(self, active: Sequence[bool]) -> None:
+        """Switch the configured algebraic regions on or off (one flag per `keep_in` entry)."""
+        flags = np.asarray(active, dtype=float).ravel()
+        if flags.size != self.nlp.layout.n_keep_in:
+            raise ConfigError(f"expected {self.nlp.layout.n_keep_in} keep-in flags, got {flags.size}")
+        self._keep_in_active = flags
+
+    def update_settings(self, **changes: float | Sequence[float]) -> None:
+        """Change run-time fields (mu, kappa, weights); structural fields raise ConfigError."""
+        structural = sorted(set(changes) - RUNTIME_FIELDS)
+        if structural:
+            raise ConfigError(f"changing {', '.join(structural)} needs a new controller (NLP rebuild)")
+        new = self.settings.replace(**changes)
+        for name, size in (("state_weights", self.model.n), ("input_weights", self.model.m)):
+            if len(getattr(new, name)) != size:
+                raise ConfigError(f"{name} needs {size} values")
+        self.settings = new
+
+    def reset(self) -> None:
+        """Forget the last plan (the next step starts cold)."""
+        self._plan = None
+
+    # -- the sample --------------------------------------------------------------------------
+    def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None) -> StepResult:
+        """Solve for the measured state x [n] and target y_t [p]; regions replace the current ones if given.
+
+        Raises InputError for a wrong-size or non-finite x or y_t and RegionError for regions that
+        do not fit; the controller's state is unchanged then.
+        """
+        x = validate_vector("state", x, self.model.n)
+        y_t = validate_vector("target", y_t, self.model.p)
+        if regions is not None:
+            self.set_regions(regions)
+        s = self.settings
+        par = self.nlp.parameters(
+            x, y_t, self._slots, kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
+            input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
+        )
+        w0, lam_x0, lam_g0 = self._initial_guess(x, y_t)
+        n_slack = self.nlp.layout.n_slack
+        if n_slack:
+            w0[-n_slack:] = np.asarray(self.nlp.slack_of(w0, par)).ravel()
+        start = time.perf_counter()
+        sol = self.nlp.solver(x0=w0, p=par, lbx=self.nlp.lbx, ubx=self.nlp.ubx, lbg=self.nlp.lbg,
+                              ubg=self.nlp.ubg, lam_x0=lam_x0, lam_g0=lam_g0)
+        solve_time = time.perf_counter() - start
+        stats = self.nlp.solver.stats()
+        solver_status = str(stats.get("return_status", "unknown"))
+        iterations = int(stats.get("iter_count", -1))
+        w = np.asarray(sol["x"]).ravel()
+        budget_cut = solver_status in BUDGET_EXHAUSTED
+        usable = np.all(np.isfinite(w)) and (
+            solver_status in SOLVED
+            or (budget_cut and self.nlp.violation(w, par) <= s.feasibility_tolerance)
+        )
+        if usable:
+            plan = self._accept(x, w, par, np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel())
+            status = "ok" if solver_status in SOLVED else "truncated"
+            return self._result(plan, x, 0, status, solver_status, iterations, solve_time, budget_cut)
+        return self._fallback(x, solver_status, iterations, solve_time, budget_cut)
+
+    def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> _Plan:
+        layout = self.nlp.layout
+        U, X, y_a, _ = layout.split_w(w)
+        x_a, u_a = (np.asarray(v).ravel() for v in self.nlp.steady(w))
+        costs = tuple(float(c) for c in self.nlp.terms(w, par))
+        self._plan = _Plan(w, U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
+        return self._plan
+
+    def _initial_guess(self, x: np.ndarray, y_t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Shifted previous plan (u(1..N-1), u_a; x(2..N), x_a), else a straight line to y_t."""
+        layout = self.nlp.layout
+        N = layout.horizon
+        plan = self._plan
+        if plan is None:
+            y_a = np.asarray(y_t, float)
+            x_a, u_a = self._steady_of(y_a)
+            x_a = np.clip(x_a, self.settings.state_min, self.settings.state_max)
+            u_a = np.clip(u_a, self._input_lo, self._input_hi)
+            ramp = np.linspace(0, 1, N + 1)[1:, None]
+            X = (1 - ramp) * x + ramp * x_a
+            U = np.tile(u_a, (N, 1))
+            rest = None if layout.closed_form else np.concatenate([x_a, u_a])
+            return layout.join_w(U, X, y_a, rest), np.zeros(layout.n_w), np.zeros(self.nlp.lbg.size)
+        shift = plan.age + 1
+        U = np.vstack([plan.inputs[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
+        X = np.vstack([plan.states[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])
+        rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
+        return layout.join_w(U, X, plan.y_a, rest), plan.lam_x, plan.lam_g
+
+    def _steady_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.model.steady_state is not None:
+            x_s, u_s = self.model.steady_state(y)
+            return np.asarray(x_s, float).ravel(), np.asarray(u_s, float).ravel()
+        return np.zeros(self.model.n), np.zeros(self.model.m)
+
+    def _fallback(self, x: np.ndarray, solver_status: str, iterations: int, solve_time: float,
+                  budget_cut: bool) -> StepResult:
+        plan = self._plan
+        if plan is None:
+            u = np.clip(np.zeros(self.model.m), self._input_lo, self._input_hi)
+            nan_n, nan_p = np.full(self.model.n, np.nan), np.full(self.model.p, np.nan)
+            return StepResult(u, x[None, :], u[None, :], nan_p, nan_n, u.copy(), math.nan, math.nan, math.nan,
+                              "fallback_safe", solver_status, iterations, solve_time, budget_cut)
+        plan.age += 1
+        status = "fallback_shift" if plan.age < self.nlp.layout.horizon else "fallback_steady"
+        return self._result(plan, x, plan.age, status, solver_status, iterations, solve_time, budget_cut)
+
+    def _result(self, plan: _Plan, x: np.ndarray, age: int, status: str, solver_status: str, iterations: int,
+                solve_time: float, budget_cut: bool) -> StepResult:
+        N = self.nlp.layout.horizon
+        inputs = np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))])
+        states = np.vstack([x, plan.states[age + 1:], np.tile(plan.x_a, (min(age, N), 1))])
+        return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
+                          *plan.costs, status, solver_status, iterations, solve_time, budget_cut)

@@ -1,0 +1,148 @@
+"""Plant models: continuous dynamics, output map, discretisation and steady-state maps.
+
+A model is a set of CasADi functions over named states, inputs and outputs. The NMPC predicts
+with a discretisation of the continuous dynamics (explicit Euler as in the paper, or RK4); the
+plant simulator integrates the continuous dynamics accurately under zero-order hold.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .errors import ConfigError
+
+DISCRETISATIONS = ("euler", "rk4")
+
+
+@dataclass(frozen=True)
+class Model:
+    """A continuous-time model x' = f(x, u), y = h(x, u).
+
+    Attributes:
+        name: registry name.
+        state_names, input_names, output_names: symbol names (n, m, p of them); algebraic
+            region expressions refer to these.
+        dynamics: CasADi Function (x[n], u[m]) -> x'[n], units of the state per second.
+        output: CasADi Function (x[n], u[m]) -> y[p].
+        steady_state: optional closed-form maps y_s[p] -> (x_s[n], u_s[m]) (the paper's g_x, g_u)
+            written with CasADi operations so they work on symbols; None means the equilibrium is
+            imposed as constraints (paper eq. 8e-8f).
+        default_plane: the two state indices that obstacle markers in the `state` frame map to.
+    """
+
+    name: str
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    dynamics: ca.Function
+    output: ca.Function
+    steady_state: Callable[[ca.MX | ca.SX], tuple[ca.MX | ca.SX, ca.MX | ca.SX]] | None = None
+    default_plane: tuple[int, int] = (0, 1)
+
+    @property
+    def n(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def m(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def p(self) -> int:
+        return len(self.output_names)
+
+    def discrete(self, sample_time: float, method: str = "euler") -> ca.Function:
+        """Discrete map (x[n], u[m]) -> x(k+1)[n] over one sample of `sample_time` s."""
+        if method not in DISCRETISATIONS:
+            raise ConfigError(f"discretization must be one of {DISCRETISATIONS}, got {method!r}")
+        if not (np.isfinite(sample_time) and sample_time > 0):
+            raise ConfigError(f"sample_time must be a positive number of seconds, got {sample_time}")
+        x = ca.SX.sym("x", self.n)
+        u = ca.SX.sym("u", self.m)
+        f = self.dynamics
+        if method == "euler":
+            x_next = x + sample_time * f(x, u)
+        else:
+            k1 = f(x, u)
+            k2 = f(x + sample_time / 2 * k1, u)
+            k3 = f(x + sample_time / 2 * k2, u)
+            k4 = f(x + sample_time * k3, u)
+            x_next = x + sample_time / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return ca.Function(f"{self.name}_{method}", [x, u], [x_next], ["x", "u"], ["x_next"])
+
+    def symbol_table(self, x: ca.SX | ca.MX, u: ca.SX | ca.MX) -> dict[str, ca.SX | ca.MX]:
+        """Names -> symbolic entries of x, u and y = h(x, u), for algebraic region expressions."""
+        y = self.output(x, u)
+        table: dict[str, ca.SX | ca.MX] = {}
+        for names, vec in ((self.state_names, x), (self.input_names, u), (self.output_names, y)):
+            for i, name in enumerate(names):
+                table[name] = vec[i]
+        return table
+
+
+def _functions(name: str, n: int, m: int, xdot: Callable, out: Callable) -> tuple[ca.Function, ca.Function]:
+    x = ca.SX.sym("x", n)
+    u = ca.SX.sym("u", m)
+    dyn = ca.Function(f"{name}_dynamics", [x, u], [xdot(x, u)], ["x", "u"], ["xdot"])
+    hout = ca.Function(f"{name}_output", [x, u], [out(x, u)], ["x", "u"], ["y"])
+    return dyn, hout
+
+
+def van_der_pol(damping: float = 0.2) -> Model:
+    """Forced van der Pol oscillator of the paper (section V).
+
+    x1' = x2, x2' = damping (1 - x1^2) x2 - x1 + u, y = x1.
+    Steady states: x_s = [y_s, 0], u_s = y_s (x2 = 0 makes x2' = -x1 + u vanish).
+    """
+    dyn, hout = _functions(
+        "van_der_pol",
+        2,
+        1,
+        lambda x, u: ca.vertcat(x[1], damping * (1 - x[0] ** 2) * x[1] - x[0] + u[0]),
+        lambda x, u: x[0],
+    )
+
+    def steady(y):
+        return ca.vertcat(y[0], 0 * y[0]), y[0]
+
+    return Model("van_der_pol", ("x1", "x2"), ("u",), ("y",), dyn, hout, steady, (0, 1))
+
+
+def double_integrator_2d(drag: float = 0.5) -> Model:
+    """Planar mobile robot as a damped double integrator.
+
+    State [px, py, vx, vy] (m, m/s), input [ax, ay] (m/s^2), output the position [px, py].
+    p' = v, v' = a - drag v. Steady states: x_s = [y, 0, 0], u_s = 0.
+    """
+    dyn, hout = _functions(
+        "double_integrator_2d",
+        4,
+        2,
+        lambda x, u: ca.vertcat(x[2], x[3], u[0] - drag * x[2], u[1] - drag * x[3]),
+        lambda x, u: x[0:2],
+    )
+
+    def steady(y):
+        return ca.vertcat(y[0], y[1], 0 * y[0], 0 * y[1]), ca.vertcat(0 * y[0], 0 * y[1])
+
+    return Model(
+        "double_integrator_2d", ("px", "py", "vx", "vy"), ("ax", "ay"), ("y1", "y2"), dyn, hout, steady, (0, 1)
+    )
+
+
+MODELS: dict[str, Callable[[], Model]] = {
+    "van_der_pol": van_der_pol,
+    "double_integrator_2d": double_integrator_2d,
+}
+
+
+def make_model(name: str) -> Model:
+    """Model by registry name; a ConfigError lists the known names."""
+    try:
+        return MODELS[name]()
+    except KeyError:
+        raise ConfigError(f"unknown model {name!r}; known models: {', '.join(sorted(MODELS))}") from None

@@ -1,0 +1,254 @@
+"""The NLP of the simplified tracking scheme with avoidance (paper eq. 19-20), built once.
+
+Decision vector w (multiple shooting, so the dynamics are equality constraints):
+    u(0..N-1) [m*N], x(1..N) [n*N], y_a [p]  (+ x_a [n], u_a [m] without a closed-form g_x, g_u),
+    slacks [(N+2) * n_regions] of the avoidance penalty (see below)
+Parameter vector (everything that may change between samples without a rebuild):
+    x(0) [n], y_t [p], kappa, mu, diag Q [n], diag R [m], keep-in active flags [n_keep],
+    obstacle slots [SlotLayout.size]
+Cost:
+    V_o + V_a + sum_{j<N} |x(j) - x_a|_Q^2 + |u(j) - u_a|_R^2,
+    V_o = kappa |y_a - y_t|^2,  V_a = mu F(x_a) + sum_{j=0..N} mu F(x(j)),  F = sum max(0, g)^2
+Constraints:
+    x(j+1) = f(x(j), u(j)); x(N) = x_a; (x(j), u(j)) in Z for j = 1..N-1 (x(0) is measured, not
+    decided: only u(0) is bounded at j = 0); (x_a, u_a) in lambda Z; without closed form the
+    equilibrium f_c(x_a, u_a) = 0 and y_a = h(x_a, u_a) (eq. 8e-8f, with the continuous
+    right-hand side, which has the same equilibria as the Euler map and is better scaled).
+The penalty max(0, g)^2 is written with slacks s >= max(0, g) and cost mu s^2: the same optimum,
+but a twice-differentiable NLP (measured: far fewer IPOPT iterations near region boundaries).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .errors import ConfigError
+from .expressions import parse_keep_in
+from .models import Model, make_model
+from .regions import SlotLayout
+from .settings import ControllerSettings
+
+
+@dataclass
+class NlpLayout:
+    """Index bookkeeping of w and of the parameter vector."""
+
+    n: int
+    m: int
+    p: int
+    horizon: int
+    n_keep_in: int
+    slot_size: int
+    closed_form: bool
+    n_slack: int
+
+    @property
+    def n_w(self) -> int:
+        extra = 0 if self.closed_form else self.n + self.m
+        return self.m * self.horizon + self.n * self.horizon + self.p + extra + self.n_slack
+
+    @property
+    def n_param(self) -> int:
+        return self.n + self.p + 2 + self.n + self.m + self.n_keep_in + self.slot_size
+
+    def split_w(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """w -> U [N, m], X [N, n] (x(1..N)), y_a [p], (x_a, u_a) stacked or None."""
+        N, n, m, p = self.horizon, self.n, self.m, self.p
+        w = np.asarray(w, float).ravel()
+        U = w[: m * N].reshape(N, m)
+        X = w[m * N: m * N + n * N].reshape(N, n)
+        y_a = w[m * N + n * N: m * N + n * N + p]
+        start = m * N + n * N + p
+        rest = None if self.closed_form else w[start:start + n + m]
+        return U, X, y_a, rest
+
+    def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: np.ndarray | None) -> np.ndarray:
+        """Inverse of split_w; the slacks are zero (set them with TrackingNlp.slack_of)."""
+        parts = [np.ravel(U), np.ravel(X), np.ravel(y_a)]
+        if not self.closed_form:
+            parts.append(np.ravel(rest))
+        parts.append(np.zeros(self.n_slack))
+        return np.concatenate(parts)
+
+
+class TrackingNlp:
+    """The NLP and its solver for one settings structure. Building is the expensive part.
+
+    Attributes:
+        layout: index bookkeeping.
+        solver: CasADi nlpsol Function (x0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0) -> solution.
+        terms: Function (w, p) -> (V_o, V_a, tracking) for reporting.
+        steady: Function (w) -> (x_a [n], u_a [m]).
+        lbx, ubx, lbg, ubg: numeric bounds (numpy).
+    """
+
+    def __init__(self, settings: ControllerSettings, model: Model | None = None) -> None:
+        self.settings = settings
+        self.model = model or make_model(settings.model)
+        self._check_sizes()
+        self._build()
+
+    def _check_sizes(self) -> None:
+        s, mdl = self.settings, self.model
+        for name, size in (("state_min", mdl.n), ("state_max", mdl.n), ("input_min", mdl.m),
+                           ("input_max", mdl.m), ("state_weights", mdl.n), ("input_weights", mdl.m)):
+            if len(getattr(s, name)) != size:
+                raise ConfigError(f"{name} needs {size} values for model {mdl.name}, got {len(getattr(s, name))}")
+        if max(s.plane) >= mdl.n:
+            raise ConfigError(f"plane {s.plane} indexes beyond the {mdl.n} states of {mdl.name}")
+
+    def _build(self) -> None:
+        s, mdl = self.settings, self.model
+        n, m, p, N = mdl.n, mdl.m, mdl.p, s.horizon
+        closed_form = s.use_closed_form_steady_state and mdl.steady_state is not None
+        slots = SlotLayout(s.max_ellipses, s.max_polygons, s.max_polygon_vertices)
+        self.slot_layout = slots
+        self.output_frame_available = p >= 2 and max(s.output_plane) < p
+
+        # keep-in expressions over the model's names, as one Function g(x, u) -> [n_keep]
+        xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
+        symbols = mdl.symbol_table(xs, us)
+        keep_in = [parse_keep_in(text, symbols) for text in s.keep_in]
+        hard = [parse_keep_in(text, symbols) for text in s.constraints]
+        keep_g = ca.Function("keep_in_g", [xs, us], [ca.vertcat(*[k.g for k in keep_in]) if keep_in else ca.SX(0, 1)])
+        hard_g = ca.Function("hard_g", [xs, us], [ca.vertcat(*[k.g for k in hard]) if hard else ca.SX(0, 1)])
+        hard_uses_u = [bool(ca.depends_on(k.g, us)) for k in hard]
+        n_depth = len(keep_in) + slots.max_ellipses + slots.max_polygons
+        layout = NlpLayout(n, m, p, N, len(keep_in), slots.size, closed_form, (N + 2) * n_depth)
+        self.layout = layout
+
+        # parameters
+        x0 = ca.SX.sym("x0", n)
+        y_t = ca.SX.sym("y_t", p)
+        kappa = ca.SX.sym("kappa")
+        mu = ca.SX.sym("mu")
+        q = ca.SX.sym("q", n)
+        r = ca.SX.sym("r", m)
+        keep_active = ca.SX.sym("keep_active", len(keep_in))
+        slot_par = ca.SX.sym("slots", slots.size)
+        par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, slot_par)
+
+        # decision variables
+        U = ca.SX.sym("U", m, N)
+        X = ca.SX.sym("X", n, N)
+        y_a = ca.SX.sym("y_a", p)
+        if closed_form:
+            x_a, u_a = mdl.steady_state(y_a)
+            x_a, u_a = ca.vertcat(x_a), ca.vertcat(u_a)
+            w = ca.vertcat(ca.vec(U), ca.vec(X), y_a)
+        else:
+            x_a, u_a = ca.SX.sym("x_a", n), ca.SX.sym("u_a", m)
+            w = ca.vertcat(ca.vec(U), ca.vec(X), y_a, x_a, u_a)
+
+        f = mdl.discrete(s.sample_time, s.discretization)
+
+        def avoidance(x, u):
+            """The region functions g at one point (keep-in expressions, then obstacle slots)."""
+            state_point = x[list(s.plane)]
+            output_point = mdl.output(x, u)[list(s.output_plane)] if self.output_frame_available else None
+            return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, state_point, output_point))
+
+        states = [x0] + [X[:, j] for j in range(N)]
+        g, lbg, ubg = [], [], []
+        tracking = 0
+        depth = [avoidance(x_a, u_a)]
+        for j in range(N):
+            g.append(states[j + 1] - f(states[j], U[:, j]))
+            lbg += [0.0] * n
+            ubg += [0.0] * n
+            dx = states[j] - x_a
+            du = U[:, j] - u_a
+            tracking += ca.dot(q * dx, dx) + ca.dot(r * du, du)
+            depth.append(avoidance(states[j], U[:, j]))
+            if hard:
+                rows = [i for i in range(len(hard)) if j > 0 or hard_uses_u[i]]
+                if rows:
+                    g.append(hard_g(states[j], U[:, j])[rows])
+                    lbg += [-np.inf] * len(rows)
+                    ubg += [0.0] * len(rows)
+        depth.append(avoidance(states[N], u_a))
+        # F = max(0, g)^2 is only C1, which costs IPOPT many iterations near region boundaries.
+        # The smooth equivalent: slacks s >= 0, s >= g, cost s^2 (at the optimum s = max(0, g)).
+        depth = ca.vertcat(*depth)
+        slack = ca.SX.sym("slack", depth.numel())
+        w = ca.vertcat(w, slack)
+        g.append(slack - depth)
+        lbg += [0.0] * depth.numel()
+        ubg += [np.inf] * depth.numel()
+        # terminal equality x(N) = x_a (eq. 20h)
+        g.append(states[N] - x_a)
+        lbg += [0.0] * n
+        ubg += [0.0] * n
+        lam = s.steady_state_scale
+        # (x_a, u_a) in lambda Z: boxes scaled by lambda, inequalities evaluated at z / lambda
+        g.append(ca.vertcat(x_a, u_a))
+        lbg += [lam * v for v in (*s.state_min, *s.input_min)]
+        ubg += [lam * v for v in (*s.state_max, *s.input_max)]
+        if hard:
+            g.append(hard_g(x_a / lam, u_a / lam))
+            lbg += [-np.inf] * len(hard)
+            ubg += [0.0] * len(hard)
+        if not closed_form:
+            g.append(mdl.dynamics(x_a, u_a))
+            g.append(y_a - mdl.output(x_a, u_a))
+            lbg += [0.0] * (n + p)
+            ubg += [0.0] * (n + p)
+
+        dy = y_a - y_t
+        v_offset = kappa * ca.dot(dy, dy)
+        cost = v_offset + mu * ca.dot(slack, slack) + tracking
+        v_avoid = mu * ca.sumsqr(ca.fmax(0, depth))
+
+        # variable bounds: u(j) in U for all j, x(1..N-1) in X; x(N) is tied to x_a
+        inf = np.inf
+        x_lo = np.tile(s.state_min, (N, 1))
+        x_hi = np.tile(s.state_max, (N, 1))
+        x_lo[-1], x_hi[-1] = -inf, inf
+        lbx = [np.tile(s.input_min, N), x_lo.ravel(), np.full(p, -inf)]
+        ubx = [np.tile(s.input_max, N), x_hi.ravel(), np.full(p, inf)]
+        if not closed_form:
+            lbx.append(np.full(n + m, -inf))
+            ubx.append(np.full(n + m, inf))
+        lbx.append(np.zeros(layout.n_slack))
+        ubx.append(np.full(layout.n_slack, inf))
+        self.lbx, self.ubx = np.concatenate(lbx), np.concatenate(ubx)
+        self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
+
+        nlp = {"x": w, "p": par, "f": cost, "g": ca.vertcat(*g)}
+        self.solver = make_solver(nlp, s)
+        self.terms = ca.Function("terms", [w, par], [v_offset, v_avoid, tracking])
+        self.steady = ca.Function("steady", [w], [x_a, u_a])
+        self.constraint_values = ca.Function("constraints", [w, par], [ca.vertcat(*g)])
+        self.slack_of = ca.Function("slack_of", [w, par], [ca.fmax(0, depth)])
+
+    def parameters(self, x0: np.ndarray, y_t: np.ndarray, slots: np.ndarray, *, kappa: float, mu: float,
+                   state_weights: np.ndarray, input_weights: np.ndarray, keep_in_active: np.ndarray) -> np.ndarray:
+        """Pack the parameter vector (see the module docstring for the order)."""
+        return np.concatenate([x0, y_t, [kappa, mu], state_weights, input_weights, keep_in_active, slots])
+
+    def violation(self, w: np.ndarray, par: np.ndarray) -> float:
+        """Largest violation of the constraints and bounds at w (0 if feasible)."""
+        g = np.asarray(self.constraint_values(w, par)).ravel()
+        viol = np.concatenate([self.lbg - g, g - self.ubg, self.lbx - w, w - self.ubx, [0.0]])
+        return float(np.max(viol[np.isfinite(viol)]))
+
+
+def make_solver(nlp: dict, settings: ControllerSettings) -> ca.Function:
+    """nlpsol for the chosen solver path with its budget (iterations, wall time)."""
+    if settings.solver == "ipopt":
+        opts = {
+            "print_time": False,
+            "error_on_fail": False,
+            "ipopt": {
+                "print_level": 0,
+                "sb": "yes",
+                "max_iter": settings.max_iterations,
+                "max_wall_time": settings.max_solve_time,
+                "tol": settings.tolerance,
+            },
+        }
+        return ca.nlpsol("nmpc", "ipopt", nlp, opts)
+    raise ConfigError(f"unknown solver {settings.solver!r}")
