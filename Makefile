@@ -1,0 +1,32 @@
+# The two commands of the README: `make demo` and `make test`. Both bootstrap .venv from the
+# pinned requirements on a fresh machine (Python 3.11, no ROS distribution: Jazzy wheels from PyPI).
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+OUT    ?= out
+PYTEST_ARGS ?=
+
+.PHONY: venv demo test lint bench clean
+
+venv: $(STAMP)
+
+$(STAMP): requirements.txt setup.py setup.cfg package.xml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -r requirements.txt
+	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python -m nmpc_avoid_ros demo --out $(OUT)
+
+test: $(STAMP)
+	$(BIN)/ruff check nmpc_avoid_ros test bench
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+lint: $(STAMP)
+	$(BIN)/ruff check nmpc_avoid_ros test bench
+
+clean:
+	rm -rf $(OUT) build install log *.egg-info

@@ -1,0 +1,113 @@
+"""The paper's figures from plain arrays: phase portrait (Fig. 1) and time series (Fig. 2).
+
+Inputs are `Trace`s (one per run), so the same code draws offline runs and runs read from bags.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # headless: figures are files, never windows
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Ellipse as EllipsePatch  # noqa: E402
+from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
+
+from ..core.regions import Ellipse, Polygon, Region  # noqa: E402
+
+COLORS = ("black", "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+
+
+@dataclass
+class Trace:
+    """One run: times t [K+1] s, states x [K+1, n], inputs u [K, m], artificial outputs y_a [K, p]."""
+
+    label: str
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    y_a: np.ndarray | None = None
+    regions: Sequence[Region] = field(default_factory=tuple)
+
+
+def shade_product_region(ax: plt.Axes, bound: float, xlim: tuple[float, float], ylim: tuple[float, float]) -> None:
+    """Shade |x1 x2| > bound in light red (the paper's non-feasible region)."""
+    x1 = np.linspace(*xlim, 600)
+    x2 = np.linspace(*ylim, 400)
+    X1, X2 = np.meshgrid(x1, x2)
+    ax.contourf(X1, X2, (np.abs(X1 * X2) > bound).astype(float), levels=[0.5, 1.5], colors=["#f4b6b6"], alpha=0.7)
+    ax.plot([], [], color="#f4b6b6", linewidth=8, label=f"avoided |x1 x2| > {bound:g}")
+
+
+def draw_region(ax: plt.Axes, region: Region, plane: tuple[int, int] = (0, 1), alpha: float = 0.35) -> None:
+    """Draw an ellipse or polygon region of the (plane[0], plane[1]) coordinates."""
+    if isinstance(region, Ellipse):
+        ax.add_patch(EllipsePatch(region.center, 2 * region.semi_axes[0], 2 * region.semi_axes[1],
+                                  angle=np.degrees(region.yaw), color="tab:red", alpha=alpha, lw=0))
+    elif isinstance(region, Polygon):
+        ax.add_patch(PolygonPatch(np.asarray(region.vertices), closed=True, color="tab:red", alpha=alpha, lw=0))
+
+
+def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float | None = 2.0,
+                   target_state: Sequence[float] | None = None, xlim=(-6.0, 6.0), ylim=(-2.0, 2.0),
+                   title: str = "Phase portrait") -> Path:
+    """Fig. 1: (x1, x2) trajectories over the shaded avoided region, x0 and the target marked."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.5), dpi=130)
+    if product_bound is not None:
+        shade_product_region(ax, product_bound, xlim, ylim)
+    for trace in traces:
+        for region in trace.regions:
+            draw_region(ax, region)
+    for i, trace in enumerate(traces):
+        ax.plot(trace.x[:, 0], trace.x[:, 1], "-o", ms=2.5, lw=1.6, color=COLORS[i % len(COLORS)], label=trace.label)
+    if traces:
+        ax.plot(*traces[0].x[0, :2], "ks", ms=8, label="initial state")
+    if target_state is not None:
+        ax.plot(target_state[0], target_state[1], "kx", ms=10, mew=2.5, label="target steady state")
+    ax.set_xlim(xlim)
+    ax.set_ylim(ylim)
+    ax.set_xlabel("x1")
+    ax.set_ylabel("x2")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def time_series(traces: Sequence[Trace], path: Path, *, state_names: Sequence[str] = ("x1", "x2"),
+                input_names: Sequence[str] = ("u",), target: Sequence[float] | None = None,
+                title: str = "Time series") -> Path:
+    """Fig. 2: each state and input over time (inputs as steps), y_a dashed on the first state."""
+    n_rows = len(state_names) + len(input_names)
+    fig, axes = plt.subplots(n_rows, 1, figsize=(7.5, 2.0 * n_rows + 0.6), dpi=130, sharex=True)
+    axes = np.atleast_1d(axes)
+    for i, trace in enumerate(traces):
+        color = COLORS[i % len(COLORS)]
+        for row in range(len(state_names)):
+            axes[row].plot(trace.t, trace.x[:, row], color=color, lw=1.6, label=trace.label)
+        if trace.y_a is not None and len(trace.y_a):
+            axes[0].plot(trace.t[:-1], trace.y_a[:, 0], "--", color=color, lw=1.0, label=f"y_a ({trace.label})")
+        for col in range(len(input_names)):
+            axes[len(state_names) + col].step(trace.t[:-1], trace.u[:, col], where="post", color=color, lw=1.6,
+                                              label=trace.label)
+    if target is not None:
+        axes[0].axhline(target[0], color="gray", ls=":", lw=1.0, label="target")
+    for ax, name in zip(axes, [*state_names, *input_names]):
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, loc="lower right")
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

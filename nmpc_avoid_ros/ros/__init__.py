@@ -1,0 +1,1 @@
+"""ROS layer: the only code that touches message fields (conversions, validation, markers)."""

@@ -1,0 +1,29 @@
+"""ament_python set-up: colcon installs the executables into lib/nmpc_avoid_ros (see setup.cfg)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "nmpc_avoid_ros"
+EXECUTABLES = ("controller", "plant", "simulate", "figures", "demo")
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "bench"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="nmpc_avoid_ros developers",
+    maintainer_email="dev@nmpc-avoid.local",
+    description="Avoidance-aware set-point NMPC for ROS 2 with CasADi",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [f"{name} = {PACKAGE}.cli:{name}_main" for name in EXECUTABLES],
+    },
+)

@@ -1,0 +1,44 @@
+"""DESIGN.md section 3: `core` never imports ROS (rclpy or any message package)."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import nmpc_avoid_ros.core as core
+
+ROS_MODULES = ("rclpy", "std_msgs", "geometry_msgs", "visualization_msgs", "diagnostic_msgs", "nav_msgs",
+               "rosgraph_msgs", "builtin_interfaces", "rcl_interfaces", "sensor_msgs", "rosidl_runtime_py")
+CORE_DIR = Path(core.__file__).parent
+
+
+def imported_modules(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text())
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_core_sources_import_no_ros_module():
+    files = sorted(CORE_DIR.glob("*.py"))
+    assert len(files) >= 6
+    offenders = {f.name: sorted(imported_modules(f) & set(ROS_MODULES)) for f in files}
+    assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def test_importing_all_of_core_loads_no_ros_module():
+    modules = [f"nmpc_avoid_ros.core.{f.stem}" for f in CORE_DIR.glob("*.py") if f.stem != "__init__"]
+    code = (
+        "import sys\n"
+        + "".join(f"import {m}\n" for m in modules)
+        + f"bad = [m for m in sys.modules if m.split('.')[0] in {ROS_MODULES!r}]\n"
+        + "print(','.join(bad))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""

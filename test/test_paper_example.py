@@ -1,0 +1,150 @@
+"""The paper's van der Pol example (section V) reproduced offline, and run-time changes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nmpc_avoid_ros.core.closed_loop import max_abs_product, run_closed_loop, settling_step
+from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.errors import InputError, RegionError
+from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.settings import ControllerSettings
+
+TOL = 0.05  # settling band on x1
+
+
+def settled(run):
+    return settling_step(run.x[:, 0], 5.0, TOL)
+
+
+@pytest.mark.parametrize("mu,plant", [(0.0, "euler"), (1e8, "euler"), (0.0, "continuous"), (1e8, "continuous")])
+def test_no_solve_failure_in_the_four_paper_runs(paper, mu, plant):
+    run = paper(mu, plant)
+    assert run.status == ["ok"] * 50
+    assert run.info["nlp_builds"] == 1
+
+
+def test_without_avoidance_settles_fast_and_violates_the_energy_limit(paper):
+    run = paper(0.0, "euler")
+    assert settled(run) is not None and settled(run) <= 25
+    assert max_abs_product(run.x) > 9.0
+
+
+def test_with_avoidance_stays_out_of_the_region_and_settles_later(paper):
+    run, free = paper(1e8, "euler"), paper(0.0, "euler")
+    assert max_abs_product(run.x) <= 2.001
+    assert settled(run) is not None and settled(run) <= 45
+    assert settled(run) > settled(free)
+
+
+def test_continuous_plant_with_avoidance(paper):
+    run = paper(1e8, "continuous")
+    assert max_abs_product(run.x) <= 2.05
+    assert settled(run) is not None and settled(run) <= 50
+
+
+def test_constraints_hold_along_the_paper_runs(paper):
+    for mu in (0.0, 1e8):
+        run = paper(mu, "euler")
+        assert np.all(np.abs(run.x[:, 0]) <= 6 + 1e-6)
+        assert np.all(np.abs(run.x[:, 1]) <= 2 + 1e-6)
+        assert np.all(np.abs(run.u) <= 6 + 1e-6)
+
+
+def test_unreachable_target_converges_to_the_best_reachable_steady_output():
+    settings = ControllerSettings()
+    controller = NmpcController(settings)
+    run = run_closed_loop(controller, [-5.0, 0.0], [8.0], 80, "euler")
+    # Y_r = lambda * [-6, 6] for x1 (and u_a = y_a within lambda * [-6, 6]): V_o is minimised at 6 lambda
+    best = 6.0 * settings.steady_state_scale
+    assert run.y_a[-1, 0] == pytest.approx(best, abs=1e-4)
+    assert run.x[-1, 0] == pytest.approx(best, abs=1e-3)
+    assert np.all(np.abs(run.x[:, 0]) <= 6 + 1e-6) and np.all(np.abs(run.x[:, 1]) <= 2 + 1e-6)
+    assert np.all(np.abs(run.u) <= 6 + 1e-6)
+    assert max_abs_product(run.x) <= 2.001
+
+
+def test_constraint_form_of_the_steady_state_matches_the_closed_form(paper):
+    """Eq. 8e-8f (x_a, u_a as variables tied by the equilibrium) gives the same loop as g_x, g_u."""
+    controller = NmpcController(ControllerSettings(mu=1e8, use_closed_form_steady_state=False))
+    run = run_closed_loop(controller, [-5.0, 0.0], [5.0], 50, "euler")
+    reference = paper(1e8, "euler")
+    assert run.status == ["ok"] * 50
+    np.testing.assert_allclose(run.x, reference.x, atol=1e-4)
+
+
+def test_target_change_takes_effect_at_the_next_step_without_rebuild():
+    controller = NmpcController(ControllerSettings())
+    x = np.array([0.5, 0.0])
+    first = controller.step(x, [1.0])
+    second = controller.step(x, [-3.0])
+    assert controller.nlp_builds == 1
+    assert first.y_a[0] > 0.5 and second.y_a[0] < -1.0
+    assert second.u[0] < first.u[0]
+
+
+def test_obstacle_change_takes_effect_at_the_next_step_without_rebuild():
+    controller = NmpcController(ControllerSettings(keep_in=()))
+    x = np.array([-5.0, 0.0])
+    free = controller.step(x, [5.0])
+    # a disc across the free path's first predicted points
+    x1_pred = free.states[1]
+    blocker = Ellipse(center=(x1_pred[0], x1_pred[1]), semi_axes=(0.6, 0.6))
+    controller.reset()
+    avoided = controller.step(x, [5.0], [blocker])
+    assert controller.nlp_builds == 1
+    depths = [blocker.depth(p) for p in avoided.states[1:]]
+    assert max(depths) < 1e-3 < blocker.depth(x1_pred[:2])
+    controller.reset()
+    again = controller.step(x, [5.0], [])
+    np.testing.assert_allclose(again.u, free.u, atol=1e-6)
+
+
+def test_invalid_inputs_are_refused_and_change_nothing():
+    controller = NmpcController(ControllerSettings())
+    with pytest.raises(InputError, match="expected 2 values"):
+        controller.step([1.0], [5.0])
+    with pytest.raises(InputError, match="NaN"):
+        controller.step([np.nan, 0.0], [5.0])
+    with pytest.raises(InputError, match="target"):
+        controller.step([0.0, 0.0], [np.inf])
+    too_many = [Ellipse((float(i), 0.0), (0.1, 0.1)) for i in range(9)]
+    with pytest.raises(RegionError, match="capacity"):
+        controller.step([0.0, 0.0], [1.0], too_many)
+    assert controller.regions == ()
+    assert controller.step([0.0, 0.0], [1.0]).status == "ok"
+
+
+def test_failed_solve_falls_back_to_the_shifted_plan_then_the_steady_input():
+    controller = NmpcController(ControllerSettings(max_iterations=1))
+    controller_ok = NmpcController(ControllerSettings())
+    x = np.array([-5.0, 0.0])
+    plan = controller_ok.step(x, [5.0])
+    controller._plan = controller_ok._plan  # the last good plan, then every solve is starved
+    statuses, inputs = [], []
+    for _ in range(7):
+        res = controller.step(x, [5.0])
+        statuses.append(res.status)
+        inputs.append(res.u[0])
+    assert statuses[:4] == ["fallback_shift"] * 4
+    assert statuses[4:] == ["fallback_steady"] * 3
+    np.testing.assert_allclose(inputs[:4], plan.inputs[1:, 0])
+    np.testing.assert_allclose(inputs[4:], [plan.u_a[0]] * 3)
+
+
+def test_no_plan_and_a_failed_solve_gives_the_safe_input():
+    controller = NmpcController(ControllerSettings(max_iterations=1))
+    res = controller.step([-5.0, 0.0], [5.0])
+    assert res.status == "fallback_safe"
+    assert res.u.tolist() == [0.0]
+
+
+def test_runtime_weight_change_needs_no_rebuild_and_structural_change_is_refused():
+    controller = NmpcController(ControllerSettings())
+    controller.update_settings(mu=0.0, kappa=10.0)
+    assert controller.settings.mu == 0.0 and controller.nlp_builds == 1
+    with pytest.raises(ValueError, match="horizon"):
+        controller.update_settings(horizon=10)
+    with pytest.raises(ValueError, match="mu"):
+        controller.update_settings(mu=-1.0)

@@ -1,0 +1,58 @@
+"""`python -m nmpc_avoid_ros simulate` and `figures`: JSON layout, overrides, errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from nmpc_avoid_ros.tools.simulate import main as simulate_main
+
+
+def test_simulate_json_layout_and_overrides(tmp_path, capsys):
+    out = tmp_path / "run.json"
+    code = simulate_main(["--steps", "12", "--x0", "-4", "0.5", "--target", "3", "--mu", "0", "--plant",
+                          "continuous", "--json", str(out)])
+    assert code == 0
+    data = json.loads(out.read_text())
+    assert len(data["x"]) == 13 and all(len(r) == 2 for r in data["x"])
+    assert data["x"][0] == [-4.0, 0.5]
+    assert len(data["u"]) == 12 and len(data["y_a"]) == 12 and len(data["solve_ms"]) == 12
+    assert set(data["status"]) <= {"ok", "truncated", "fallback_shift", "fallback_steady", "fallback_safe"}
+    assert data["target"][0] == [3.0]
+    assert data["summary"]["steps"] == 12
+    line = capsys.readouterr().out.strip()
+    assert line.startswith("simulate: 12 steps, plant=continuous, mu=0")
+
+
+def test_simulate_matches_the_library_run(paper, tmp_path):
+    out = tmp_path / "run.json"
+    assert simulate_main(["--steps", "50", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    ref = paper(1e8, "euler")
+    np.testing.assert_allclose(data["x"], ref.x, atol=1e-9)
+    assert data["summary"]["max_abs_x1x2"] <= 2.001
+
+
+@pytest.mark.parametrize("args, message", [(["--x0", "1"], "x0"), (["--mu", "-2"], "mu"),
+                                            (["--config", "/nonexistent.yaml"], "cannot read")])
+def test_simulate_bad_input_is_a_clear_error(args, message, capsys):
+    assert simulate_main(["--steps", "2", *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_module_dispatch_lists_commands_and_runs_figures(tmp_path):
+    listing = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "--help"], capture_output=True, text=True)
+    assert listing.returncode == 0 and "simulate" in listing.stdout and "controller" in listing.stdout
+    res = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "figures", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    for name in ("phase_portrait.png", "time_series.png", "metrics.json"):
+        assert (tmp_path / name).stat().st_size > 1000 or name == "metrics.json"
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["runs"]["with_avoidance"]["max_abs_x1x2"] <= 2.001
+    assert metrics["runs"]["without_avoidance"]["max_abs_x1x2"] > 9
