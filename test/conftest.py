@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import functools
+import itertools
+import os
+import sys
+from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))  # test helpers (rosgraph)
 
 from nmpc_avoid_ros.core.closed_loop import ClosedLoopRun, run_closed_loop
 from nmpc_avoid_ros.core.controller import NmpcController
@@ -25,3 +31,37 @@ def paper_run(mu: float, plant: str) -> ClosedLoopRun:
 @pytest.fixture
 def paper():
     return paper_run
+
+
+_DOMAIN_BASE = 10 + os.getpid() % 40  # distinct from other concurrent test sessions on this host
+_domain_counter = itertools.count()
+
+
+@pytest.fixture
+def ros_graph(tmp_path):
+    """(domain_id, env, start, probe_factory): isolated DDS domain; every started node is stopped."""
+    from rosgraph import NodeProcess, Probe, ros_env
+
+    domain = _DOMAIN_BASE + 2 * (next(_domain_counter) % 25)
+    log_dir = tmp_path / "ros_logs"
+    log_dir.mkdir()
+    env = ros_env(domain, log_dir)
+    started: list[NodeProcess] = []
+    probes: list[Probe] = []
+
+    def start(command: str, *args: str) -> NodeProcess:
+        proc = NodeProcess(command, list(args), env, log_dir)
+        started.append(proc)
+        return proc
+
+    def probe(name: str = "probe") -> Probe:
+        p = Probe(domain, name)
+        probes.append(p)
+        return p
+
+    yield domain, env, start, probe
+    for p in probes:
+        p.close()
+    for proc in started:
+        if proc.alive():
+            proc.stop()

@@ -205,3 +205,35 @@ def default_config_path() -> Path:
         if candidate.exists():
             return candidate
     raise ConfigError(f"cannot find the shipped van_der_pol.yaml (looked at {source} and {installed})")
+
+
+#: one-line documentation of every controller setting (used by the node's parameter
+#: descriptors and the README's parameter table)
+SETTING_DOCS: dict[str, str] = {
+    "model": "plant model of the prediction (van_der_pol, double_integrator_2d)",
+    "sample_time": "sample time Ts of the controller and of the discretisation, s",
+    "horizon": "prediction horizon N (samples)",
+    "discretization": "prediction model discretisation: euler (as in the paper) or rk4",
+    "state_min": "lower bounds of the state box of Z (n values; must be <= 0)",
+    "state_max": "upper bounds of the state box of Z (n values; must be >= 0)",
+    "input_min": "lower bounds of the input box of Z (m values; must be <= 0)",
+    "input_max": "upper bounds of the input box of Z (m values; must be >= 0)",
+    "steady_state_scale": "lambda in (0, 1]: the artificial steady state lies in lambda * Z",
+    "constraints": "hard inequalities of Z over state/input/output names, e.g. 'x1 + x2 <= 3'",
+    "keep_in": "penalised regions to stay in, e.g. 'x1*x2 - 2 <= 0' (penalty mu * max(0, g)^2)",
+    "use_closed_form_steady_state": "use the model's g_x, g_u; false imposes the equilibrium as constraints",
+    "plane": "the two state indices that 'state'-frame obstacle markers map to",
+    "output_plane": "the two output indices that 'output'-frame obstacle markers map to",
+    "max_ellipses": "capacity of ellipse obstacle slots (CYLINDER/SPHERE markers)",
+    "max_polygons": "capacity of polygon obstacle slots (CUBE/LINE_STRIP markers)",
+    "max_polygon_vertices": "largest number of vertices of a polygon obstacle",
+    "solver": "NLP solver path (ipopt)",
+    "state_weights": "diagonal of Q in the stage cost |x - x_a|_Q^2 (n values >= 0)",
+    "input_weights": "diagonal of R in the stage cost |u - u_a|_R^2 (m values >= 0)",
+    "kappa": "offset cost weight: V_o = kappa |y_a - y_t|^2",
+    "mu": "avoidance weight: V_a = mu (F(x_a) + sum_j F(x(j))); 0 disables avoidance",
+    "max_iterations": "solver iteration budget per sample",
+    "max_solve_time": "solver wall-time budget per sample, s",
+    "tolerance": "solver convergence tolerance",
+    "feasibility_tolerance": "a budget-cut iterate is applied only if its constraint violation is below this",
+}

@@ -150,7 +150,7 @@ class RegionStore:
                 self._apply_one(marker, (ns, marker_id), now, report)
             except (RegionError, InputError) as exc:
                 report.rejected.append((ns, marker_id, str(exc) or type(exc).__name__))
-            except Exception as exc:  # noqa: BLE001 - a malformed message object must never crash the node
+            except Exception as exc:  # a malformed message object must never crash the node
                 report.rejected.append((ns, marker_id, f"malformed marker: {type(exc).__name__}: {exc}"))
         after = {key: entry.region for key, entry in self._entries.items()}
         report.changed = after != before
@@ -251,11 +251,11 @@ def _key_of(marker: object) -> tuple[str, int]:
     """(ns, id) of a marker, tolerant of garbage so a rejection can always be reported."""
     try:
         ns = str(marker.ns)  # type: ignore[attr-defined]
-    except Exception:  # noqa: BLE001
+    except Exception:  # garbage marker object: still report it
         ns = ""
     try:
         marker_id = int(marker.id)  # type: ignore[attr-defined]
-    except Exception:  # noqa: BLE001
+    except Exception:  # garbage marker object: still report it
         marker_id = MESSAGE_ID
     return ns, marker_id
 

@@ -1,0 +1,261 @@
+"""`controller`: the NMPC node. Subscribes to state, target, obstacles; publishes command every sample.
+
+    ros2 run nmpc_avoid_ros controller --ros-args --params-file config/van_der_pol.yaml
+
+Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the
+latest state. Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message is
+solved once, as it arrives, so the ROS loop reproduces the offline loop exactly.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from rcl_interfaces.msg import ParameterType, SetParametersResult
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+from visualization_msgs.msg import MarkerArray
+
+from ..core.controller import NmpcController, StepResult
+from ..core.errors import InputError, NmpcError
+from ..core.settings import RUNTIME_FIELDS
+from ..ros.conversions import array_to_vector, vector_to_array
+from ..ros.markers import RegionStore
+from ..ros.parameters import LATCHED_QOS, STREAM_QOS, ParamSpec, declare, finite_vector, settings_from_values, \
+    settings_specs
+from .runner import run_node
+
+STALE_BEHAVIORS = ("hold_steady", "zero", "safe_input", "last")
+
+NODE_SPECS = [
+    ParamSpec("target", None, "initial target y_t (p values); later targets arrive on 'target' or by param set",
+              ParameterType.PARAMETER_DOUBLE_ARRAY),
+    ParamSpec("state_timeout", 1.5, "a state older than this (s, node clock) is stale: no solve, safe behaviour",
+              ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 3600.0)),
+    ParamSpec("stale_behavior", "hold_steady", "command while the state is stale or missing",
+              ParameterType.PARAMETER_STRING, choices=STALE_BEHAVIORS),
+    ParamSpec("safe_input", None, "command of stale_behavior safe_input (m values; default zeros)",
+              ParameterType.PARAMETER_DOUBLE_ARRAY),
+    ParamSpec("lockstep", False, "solve once per arriving state instead of on the timer (with a lockstep plant)",
+              ParameterType.PARAMETER_BOOL, read_only=True),
+    ParamSpec("log_throttle", 2.0, "minimum seconds between repeated warnings of one kind",
+              ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 3600.0)),
+]
+
+
+class ControllerNode(Node):
+    """Thin node: converts messages, calls the core controller, publishes. Built once in __init__."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("controller", **kwargs)
+        values = declare(self, settings_specs() + NODE_SPECS)
+        self.controller = NmpcController(settings_from_values(values))  # the one NLP build
+        model = self.controller.model
+        self.n, self.m, self.p = model.n, model.m, model.p
+        s = self.controller.settings
+        self.store = RegionStore(max_ellipses=s.max_ellipses, max_polygons=s.max_polygons,
+                                 max_polygon_vertices=s.max_polygon_vertices,
+                                 output_frame_available=self.controller.nlp.output_frame_available)
+        self.regions_revision = self.store.revision
+        self.target: np.ndarray | None = None
+        if values["target"] is not None:
+            self.target = np.asarray(finite_vector(values["target"], self.p, "target"))
+        self.safe_input = np.zeros(self.m)
+        if values["safe_input"] is not None:
+            self.safe_input = np.asarray(finite_vector(values["safe_input"], self.m, "safe_input"))
+        self.state_timeout = float(values["state_timeout"])
+        self.stale_behavior = str(values["stale_behavior"])
+        if self.stale_behavior not in STALE_BEHAVIORS:
+            raise NmpcError(f"stale_behavior must be one of {STALE_BEHAVIORS}, got {self.stale_behavior!r}")
+        self.lockstep = bool(values["lockstep"])
+        self.throttle = float(values["log_throttle"])
+
+        self.state: np.ndarray | None = None
+        self.state_time: float | None = None  # node-clock seconds of the last good state
+        self.state_solved = True  # lockstep: has the latest state been answered?
+        self.last_result: StepResult | None = None
+        self.last_command = np.zeros(self.m)
+        self.counts = {"samples": 0, "fallbacks": 0, "rejected_inputs": 0, "deadline_overruns": 0, "stale": 0}
+
+        self.pub_command = self.create_publisher(Float64MultiArray, "command", STREAM_QOS)
+        self.pub_prediction = self.create_publisher(Path, "~/prediction", STREAM_QOS)
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
+        self.create_subscription(Float64MultiArray, "state", self.on_state, STREAM_QOS)
+        self.create_subscription(Float64MultiArray, "target", self.on_target, LATCHED_QOS)
+        self.create_subscription(MarkerArray, "obstacles", self.on_obstacles, LATCHED_QOS)
+        self.add_on_set_parameters_callback(self.on_set_parameters)
+        if not self.lockstep:
+            self.timer = self.create_timer(s.sample_time, self.on_sample)
+        self.get_logger().info(
+            f"controller ready: model={s.model} N={s.horizon} Ts={s.sample_time}s {s.discretization} "
+            f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
+            f"mode={'lockstep' if self.lockstep else 'timer'} target={None if self.target is None else self.target.tolist()}"
+        )
+
+    # -- inputs ------------------------------------------------------------------------------
+    def now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def reject(self, what: str, reason: str) -> None:
+        self.counts["rejected_inputs"] += 1
+        self.get_logger().warning(f"rejected {what}: {reason}", throttle_duration_sec=self.throttle)
+
+    def on_state(self, msg: Float64MultiArray) -> None:
+        try:
+            self.state = array_to_vector(msg, self.n, "state")
+        except InputError as exc:
+            self.reject("state", str(exc))
+            return
+        self.state_time = self.now()
+        self.state_solved = False
+        if self.lockstep:
+            self.on_sample()
+
+    def on_target(self, msg: Float64MultiArray) -> None:
+        try:
+            self.target = array_to_vector(msg, self.p, "target")
+        except InputError as exc:
+            self.reject("target", str(exc))
+            return
+        self.get_logger().info(f"target y_t = {self.target.tolist()}")
+        if self.lockstep and not self.state_solved:
+            self.on_sample()
+
+    def on_obstacles(self, msg: MarkerArray) -> None:
+        report = self.store.apply(msg, self.now())
+        for ns, marker_id, reason in report.rejected:
+            self.reject(f"marker {ns}/{marker_id}", reason)
+
+    def on_set_parameters(self, params: list) -> SetParametersResult:
+        """Validate the whole batch; apply it only if every value is valid."""
+        changes, target = {}, None
+        try:
+            for param in params:
+                name, value = param.name, param.value
+                if name in RUNTIME_FIELDS:
+                    changes[name] = tuple(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") \
+                        else value
+                elif name == "target":
+                    target = np.asarray(finite_vector(value, self.p, "target"))
+                elif name == "safe_input":
+                    finite_vector(value, self.m, "safe_input")
+                elif name == "stale_behavior" and value not in STALE_BEHAVIORS:
+                    raise ValueError(f"stale_behavior must be one of {STALE_BEHAVIORS}")
+                elif name in ("state_timeout", "log_throttle") and not (math.isfinite(value) and value >= 0):
+                    raise ValueError(f"{name} must be a finite number >= 0")
+            if changes:
+                self.controller.settings.replace(**changes)  # validates, raises ConfigError with a reason
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        if changes:
+            self.controller.update_settings(**changes)
+        for param in params:
+            if param.name == "safe_input":
+                self.safe_input = np.asarray(param.value, float)
+            elif param.name == "stale_behavior":
+                self.stale_behavior = param.value
+            elif param.name == "state_timeout":
+                self.state_timeout = float(param.value)
+            elif param.name == "log_throttle":
+                self.throttle = float(param.value)
+        if target is not None:
+            self.target = target
+        return SetParametersResult(successful=True)
+
+    # -- the sample ----------------------------------------------------------------------------
+    def on_sample(self) -> None:
+        now = self.now()
+        self.counts["samples"] += 1
+        stale = self.state is None or (not self.lockstep and now - self.state_time > self.state_timeout)
+        if stale or self.target is None:
+            if self.lockstep:
+                return  # the plant waits for our answer; nothing to command yet
+            self.publish_safe(now, "no state yet" if self.state is None else
+                              ("state stale" if stale else "waiting for a target"), error=stale)
+            return
+        regions = self.store.active(now)  # drops expired regions
+        if self.store.revision != self.regions_revision:
+            try:
+                self.controller.set_regions(regions)
+                self.get_logger().info(f"{len(regions)} obstacle region(s) active")
+            except NmpcError as exc:
+                self.reject("obstacles", str(exc))
+            self.regions_revision = self.store.revision
+        started = time.perf_counter()
+        result = self.controller.step(self.state, self.target)
+        self.state_solved = True
+        self.last_result = result
+        self.last_command = result.u
+        self.pub_command.publish(vector_to_array(result.u))
+        latency = time.perf_counter() - started
+        if result.is_fallback:
+            self.counts["fallbacks"] += 1
+        if result.solve_time > self.controller.settings.sample_time:
+            self.counts["deadline_overruns"] += 1
+        self.publish_prediction(result)
+        level = DiagnosticStatus.WARN if result.is_fallback else DiagnosticStatus.OK
+        self.publish_diagnostics(level, result.status, result, latency)
+
+    def publish_safe(self, now: float, why: str, error: bool) -> None:
+        behavior = self.stale_behavior
+        if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
+            u = self.last_result.u_a
+        elif behavior == "last":
+            u = self.last_command
+        elif behavior == "safe_input":
+            u = self.safe_input
+        else:
+            u = np.zeros(self.m)
+        self.pub_command.publish(vector_to_array(u))
+        self.last_command = np.asarray(u, float)
+        if error:
+            self.counts["stale"] += 1
+        level = DiagnosticStatus.ERROR if error else DiagnosticStatus.WARN
+        self.publish_diagnostics(level, f"{why}: applying {behavior}", None, 0.0)
+        if error:
+            self.get_logger().error(f"{why}: applying {behavior} {np.asarray(u).tolist()}",
+                                    throttle_duration_sec=self.throttle)
+
+    def publish_prediction(self, result: StepResult) -> None:
+        plane = self.controller.settings.plane
+        path = Path()
+        path.header.stamp = self.get_clock().now().to_msg()
+        path.header.frame_id = "state"
+        for x in result.states:
+            pose = PoseStamped()
+            pose.header = path.header
+            pose.pose.position.x, pose.pose.position.y = float(x[plane[0]]), float(x[plane[1]])
+            pose.pose.orientation.w = 1.0
+            path.poses.append(pose)
+        self.pub_prediction.publish(path)
+
+    def publish_diagnostics(self, level: bytes, message: str, result: StepResult | None, latency: float) -> None:
+        s = self.controller.settings
+        values = {**{k: str(v) for k, v in self.counts.items()}, "mu": f"{s.mu:g}", "kappa": f"{s.kappa:g}",
+                  "nlp_builds": str(self.controller.nlp_builds), "regions": str(len(self.controller.regions)),
+                  "command": str(np.asarray(self.last_command).tolist())}
+        if result is not None:
+            values.update({
+                "status": result.status, "solver_status": result.solver_status,
+                "iterations": str(result.iterations), "solve_time_ms": f"{result.solve_time * 1e3:.3f}",
+                "step_latency_ms": f"{latency * 1e3:.3f}", "budget_exhausted": str(result.budget_exhausted),
+                "offset_cost": f"{result.offset_cost:.6g}", "avoidance_cost": f"{result.avoidance_cost:.6g}",
+                "tracking_cost": f"{result.tracking_cost:.6g}", "y_a": str(result.y_a.tolist()),
+                "state": str(result.states[0].tolist()),
+            })
+        status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: nmpc",
+                                  message=message, hardware_id=self.get_fully_qualified_name())
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [status]
+        self.pub_diagnostics.publish(msg)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(ControllerNode, argv, "controller", __doc__)

@@ -1,0 +1,128 @@
+"""`plant`: simulates a model under zero-order hold of the last command and publishes `state`.
+
+    ros2 run nmpc_avoid_ros plant --ros-args --params-file config/van_der_pol.yaml
+
+Real time: a timer at `publish_rate` Hz integrates the continuous dynamics over each period.
+Lockstep (`lockstep: true`): the plant publishes x0 once the controller listens, then after each
+command advances exactly one `sample_time`, publishes `/clock` and the new state; a closed loop
+runs as fast as the controller solves and reproduces the offline loop.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from rcl_interfaces.msg import ParameterType
+from rclpy.node import Node
+from rclpy.time import Time
+from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Float64MultiArray
+
+from ..core.closed_loop import ContinuousPlant, DiscretePlant
+from ..core.errors import ConfigError, InputError
+from ..core.models import MODELS, make_model
+from ..ros.conversions import array_to_vector, vector_to_array
+from ..ros.parameters import STREAM_QOS, ParamSpec, declare, finite_vector
+from .runner import run_node
+
+INTEGRATIONS = ("continuous", "euler", "rk4")
+
+PLANT_SPECS = [
+    ParamSpec("model", "van_der_pol", "model to simulate", ParameterType.PARAMETER_STRING, read_only=True,
+              choices=tuple(sorted(MODELS))),
+    ParamSpec("initial_state", None, "initial state x0 (n values; default zeros)", ParameterType.PARAMETER_DOUBLE_ARRAY,
+              read_only=True),
+    ParamSpec("sample_time", 0.5, "lockstep: time advanced per command, s", ParameterType.PARAMETER_DOUBLE,
+              read_only=True, float_range=(1e-6, 3600.0)),
+    ParamSpec("integration", "continuous", "continuous: ZOH + DOP853 (rtol 1e-10); euler/rk4: one discrete step "
+              "per sample (lockstep only)", ParameterType.PARAMETER_STRING, read_only=True, choices=INTEGRATIONS),
+    ParamSpec("publish_rate", 20.0, "real time: integration and state publication rate, Hz",
+              ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.1, 10000.0)),
+    ParamSpec("lockstep", False, "advance one sample_time per command and publish /clock",
+              ParameterType.PARAMETER_BOOL, read_only=True),
+    ParamSpec("wait_for_subscribers", 1, "lockstep: publish x0 once this many `state` subscribers are matched "
+              "(controller, recorder, ...)", ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(1, 1000)),
+    ParamSpec("process_noise_std", 0.0, "std of Gaussian noise added to the state per step (state units)",
+              ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.0, 1e3)),
+    ParamSpec("noise_seed", 0, "seed of the process noise", ParameterType.PARAMETER_INTEGER, read_only=True),
+]
+
+
+class PlantNode(Node):
+    """Thin node around core.closed_loop plants."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("plant", **kwargs)
+        values = declare(self, PLANT_SPECS)
+        self.model = make_model(values["model"])
+        n = self.model.n
+        self.x = np.zeros(n) if values["initial_state"] is None else \
+            np.asarray(finite_vector(values["initial_state"], n, "initial_state"))
+        self.u = np.zeros(self.model.m)
+        self.sample_time = float(values["sample_time"])
+        self.lockstep = bool(values["lockstep"])
+        integration = values["integration"]
+        if integration not in INTEGRATIONS:
+            raise ConfigError(f"integration must be one of {INTEGRATIONS}, got {integration!r}")
+        if integration != "continuous" and not self.lockstep:
+            raise ConfigError("integration euler/rk4 steps by sample_time: use it with lockstep: true")
+        self.sim = ContinuousPlant(self.model) if integration == "continuous" else \
+            DiscretePlant(self.model, self.sample_time, integration)
+        self.wait_for_subscribers = int(values["wait_for_subscribers"])
+        self.noise_std = float(values["process_noise_std"])
+        self.rng = np.random.default_rng(int(values["noise_seed"]))
+        self.sim_time_ns = 0
+        self.steps = 0
+        self.rejected = 0
+
+        self.pub_state = self.create_publisher(Float64MultiArray, "state", STREAM_QOS)
+        self.create_subscription(Float64MultiArray, "command", self.on_command, STREAM_QOS)
+        if self.lockstep:
+            self.pub_clock = self.create_publisher(Clock, "/clock", STREAM_QOS)
+            # publish x0 once the controller's subscription is matched (then exactly once per command)
+            self.waiting_timer = self.create_timer(0.05, self.publish_initial_when_heard)
+        else:
+            self.period = 1.0 / float(values["publish_rate"])
+            self.timer = self.create_timer(self.period, self.on_timer)
+        self.get_logger().info(
+            f"plant ready: model={self.model.name} x0={self.x.tolist()} integration={integration} "
+            f"mode={'lockstep Ts=%gs' % self.sample_time if self.lockstep else 'real time %g Hz' % (1 / self.period)}"
+        )
+
+    def publish_state(self) -> None:
+        self.pub_state.publish(vector_to_array(self.x))
+
+    def publish_initial_when_heard(self) -> None:
+        if self.pub_state.get_subscription_count() >= self.wait_for_subscribers:
+            self.waiting_timer.cancel()
+            self.publish_clock()
+            self.publish_state()
+
+    def publish_clock(self) -> None:
+        self.pub_clock.publish(Clock(clock=Time(nanoseconds=self.sim_time_ns).to_msg()))
+
+    def on_command(self, msg: Float64MultiArray) -> None:
+        try:
+            self.u = array_to_vector(msg, self.model.m, "command")
+        except InputError as exc:
+            self.rejected += 1
+            self.get_logger().warning(f"rejected command: {exc}", throttle_duration_sec=2.0)
+            return
+        if self.lockstep:
+            self.advance(self.sample_time)
+            self.sim_time_ns += round(self.sample_time * 1e9)
+            self.publish_clock()
+            self.publish_state()
+
+    def on_timer(self) -> None:
+        self.advance(self.period)
+        self.publish_state()
+
+    def advance(self, dt: float) -> None:
+        self.x = self.sim.advance(self.x, self.u, dt)
+        if self.noise_std > 0:
+            self.x = self.x + self.rng.normal(0.0, self.noise_std, self.x.shape)
+        self.steps += 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(PlantNode, argv, "plant", __doc__)
