@@ -4,15 +4,14 @@ process group stopped by PID, and an in-process probe node to publish and listen
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import rclpy
 from rclpy.node import Node
+
+from nmpc_avoid_ros.tools.processes import NodeProcess  # noqa: F401 - re-exported for the tests
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "van_der_pol.yaml"
@@ -24,42 +23,6 @@ def ros_env(domain_id: int, log_dir: Path) -> dict[str, str]:
     env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_LOG_DIR=str(log_dir),
                PYTHONPATH=str(ROOT) + os.pathsep + env.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
     return env
-
-
-class NodeProcess:
-    """`python -m nmpc_avoid_ros <command> ...` in its own process group; output to a file."""
-
-    def __init__(self, command: str, args: list[str], env: dict[str, str], log_dir: Path) -> None:
-        self.log_path = log_dir / f"{command}-{time.monotonic_ns()}.log"
-        self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen([sys.executable, "-m", "nmpc_avoid_ros", command, *args], env=env,
-                                     stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def send(self, sig: int) -> None:
-        if self.alive():
-            os.killpg(self.proc.pid, sig)
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
-        """Signal our own process group, wait; SIGKILL the group if it does not exit in time."""
-        try:
-            self.send(sig)
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            return self.proc.wait(5)
-        finally:
-            self._log.close()
-
-    def output(self) -> str:
-        self._log.flush()
-        return self.log_path.read_text()
 
 
 class Probe:

@@ -26,8 +26,15 @@ from ..core.errors import InputError, NmpcError
 from ..core.settings import RUNTIME_FIELDS
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.markers import RegionStore
-from ..ros.parameters import LATCHED_QOS, STREAM_QOS, ParamSpec, declare, finite_vector, settings_from_values, \
-    settings_specs
+from ..ros.parameters import (
+    LATCHED_QOS,
+    STREAM_QOS,
+    ParamSpec,
+    declare,
+    finite_vector,
+    settings_from_values,
+    settings_specs,
+)
 from .runner import run_node
 
 STALE_BEHAVIORS = ("hold_steady", "zero", "safe_input", "last")
@@ -94,7 +101,8 @@ class ControllerNode(Node):
         self.get_logger().info(
             f"controller ready: model={s.model} N={s.horizon} Ts={s.sample_time}s {s.discretization} "
             f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
-            f"mode={'lockstep' if self.lockstep else 'timer'} target={None if self.target is None else self.target.tolist()}"
+            f"mode={'lockstep' if self.lockstep else 'timer'} "
+            f"target={None if self.target is None else self.target.tolist()}"
         )
 
     # -- inputs ------------------------------------------------------------------------------

@@ -41,6 +41,8 @@ PLANT_SPECS = [
               ParameterType.PARAMETER_BOOL, read_only=True),
     ParamSpec("wait_for_subscribers", 1, "lockstep: publish x0 once this many `state` subscribers are matched "
               "(controller, recorder, ...)", ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(1, 1000)),
+    ParamSpec("hold_until_command", True, "real time: keep x0 until the first command arrives (the loop is closed)",
+              ParameterType.PARAMETER_BOOL, read_only=True),
     ParamSpec("process_noise_std", 0.0, "std of Gaussian noise added to the state per step (state units)",
               ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.0, 1e3)),
     ParamSpec("noise_seed", 0, "seed of the process noise", ParameterType.PARAMETER_INTEGER, read_only=True),
@@ -68,6 +70,7 @@ class PlantNode(Node):
         self.sim = ContinuousPlant(self.model) if integration == "continuous" else \
             DiscretePlant(self.model, self.sample_time, integration)
         self.wait_for_subscribers = int(values["wait_for_subscribers"])
+        self.holding = bool(values["hold_until_command"])
         self.noise_std = float(values["process_noise_std"])
         self.rng = np.random.default_rng(int(values["noise_seed"]))
         self.sim_time_ns = 0
@@ -83,9 +86,9 @@ class PlantNode(Node):
         else:
             self.period = 1.0 / float(values["publish_rate"])
             self.timer = self.create_timer(self.period, self.on_timer)
+        mode = f"lockstep Ts={self.sample_time:g}s" if self.lockstep else f"real time {1 / self.period:g} Hz"
         self.get_logger().info(
-            f"plant ready: model={self.model.name} x0={self.x.tolist()} integration={integration} "
-            f"mode={'lockstep Ts=%gs' % self.sample_time if self.lockstep else 'real time %g Hz' % (1 / self.period)}"
+            f"plant ready: model={self.model.name} x0={self.x.tolist()} integration={integration} mode={mode}"
         )
 
     def publish_state(self) -> None:
@@ -107,6 +110,7 @@ class PlantNode(Node):
             self.rejected += 1
             self.get_logger().warning(f"rejected command: {exc}", throttle_duration_sec=2.0)
             return
+        self.holding = False
         if self.lockstep:
             self.advance(self.sample_time)
             self.sim_time_ns += round(self.sample_time * 1e9)
@@ -114,7 +118,8 @@ class PlantNode(Node):
             self.publish_state()
 
     def on_timer(self) -> None:
-        self.advance(self.period)
+        if not self.holding:
+            self.advance(self.period)
         self.publish_state()
 
     def advance(self, dt: float) -> None:

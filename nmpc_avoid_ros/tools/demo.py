@@ -1,0 +1,169 @@
+"""`demo`: the paper's example through ROS 2 topics, with and without avoidance -> DIR.
+
+    python -m nmpc_avoid_ros demo --out out [--lockstep] [--config FILE] [--steps 50]
+
+Starts plant and controller as separate processes for each run, publishes the target and the
+(empty) obstacle set on their topics, collects what the nodes publish, and writes
+`metrics.json`, `phase_portrait.png`, `time_series.png` and one JSON per run to DIR, next to the
+offline reference of the same configuration (and, in lockstep, how far the two differ).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..bag.figures import Trace, phase_portrait, time_series
+from ..core.closed_loop import settling_step
+from ..core.errors import NmpcError
+from ..core.settings import default_config_path
+from .processes import NodeProcess
+from .simulate import SETTLING_TOLERANCE, load_scenario, simulate
+
+RUNS = (("with_avoidance", None), ("without_avoidance", 0.0))
+
+
+def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env: dict[str, str], log_dir: Path,
+                 timeout: float) -> dict:
+    """One closed loop through DDS; returns x [K+1, n], u [K, m], y_a, solve times, statuses."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import Float64MultiArray
+    from visualization_msgs.msg import MarkerArray
+
+    from ..ros.markers import delete_all_marker
+    from ..ros.parameters import LATCHED_QOS, STREAM_QOS
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("demo", context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    states: list[list[float]] = []
+    samples: list[dict[str, str]] = []
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if "solve_time_ms" in values and status.name.startswith(node.get_namespace().rstrip("/") + "/controller"):
+                samples.append(values)
+
+    node.create_subscription(Float64MultiArray, "state", lambda m: states.append(list(m.data)), STREAM_QOS)
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, STREAM_QOS)
+    target_pub = node.create_publisher(Float64MultiArray, "target", LATCHED_QOS)
+    obstacles_pub = node.create_publisher(MarkerArray, "obstacles", LATCHED_QOS)
+    scenario = load_scenario(config)
+    obstacles_pub.publish(MarkerArray(markers=[delete_all_marker()]))  # the run's regions: none besides keep_in
+
+    ros_args = ["--ros-args", "--params-file", str(config)]
+    ctrl_args = [*ros_args, "-p", f"lockstep:={str(lockstep).lower()}"]
+    if mu is not None:
+        ctrl_args += ["-p", f"mu:={mu}"]
+    plant_args = [*ros_args, "-p", f"lockstep:={str(lockstep).lower()}"]
+    if lockstep:
+        plant_args += ["-p", "integration:=euler", "-p", "wait_for_subscribers:=2"]
+    procs = [NodeProcess("controller", ctrl_args, env, log_dir)]
+    try:
+        target_pub.publish(Float64MultiArray(data=[float(v) for v in scenario.target]))
+        deadline = time.monotonic() + timeout
+        # start the plant once we hear the controller, so no sample's diagnostics are missed
+        while node.count_publishers("/diagnostics") < 1 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        procs.append(NodeProcess("plant", plant_args, env, log_dir))
+        if lockstep:
+            needed = lambda: len(states) >= steps + 1 and len(samples) >= steps  # noqa: E731
+        else:
+            needed = lambda: len(samples) >= steps + 1  # noqa: E731
+        while not needed() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            for p in procs:
+                if not p.alive():
+                    raise NmpcError(f"{p.command} exited early:\n{p.output()[-2000:]}")
+        if not needed():
+            raise NmpcError(f"the loop did not complete {steps} steps in {timeout:.0f} s "
+                            f"({len(states)} states, {len(samples)} samples)")
+    finally:
+        codes = [p.stop() for p in procs]
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    if any(codes):
+        raise NmpcError(f"a node did not exit cleanly: exit codes {codes}")
+    solved = samples[:steps]
+    if lockstep:
+        x = np.array(states[: steps + 1])
+    else:  # the state each sample solved on, and the one after the last
+        x = np.array([json.loads(s["state"]) for s in samples[: steps + 1]])
+    return {
+        "x": x.tolist(),
+        "u": [json.loads(s["command"]) for s in solved],
+        "y_a": [json.loads(s["y_a"]) for s in solved],
+        "solve_ms": [float(s["solve_time_ms"]) for s in solved],
+        "status": [s["status"] for s in solved],
+        "sample_time": scenario.settings.sample_time,
+    }
+
+
+def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # keep the demo's traffic on this host
+    env.setdefault("ROS_LOG_DIR", str((out / "ros_logs").resolve()))
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR")})
+    scenario = load_scenario(config, steps=steps)
+    metrics: dict = {"config": str(config), "mode": "lockstep" if lockstep else "real time", "steps": steps,
+                     "target": scenario.target, "runs": {}}
+    traces = []
+    for name, mu in RUNS:
+        run_mu = scenario.settings.mu if mu is None else mu
+        print(f"demo: {name} (mu={run_mu:g}), {'lockstep' if lockstep else 'real time'} ...", flush=True)
+        data = _collect_run(config, mu, steps, lockstep, env, out / "logs", timeout)
+        x = np.array(data["x"])
+        offline, offline_summary = simulate(load_scenario(config, steps=steps, mu=run_mu, plant="euler"))
+        summary = {
+            "mu": run_mu,
+            "settling_step": settling_step(x[:, 0], scenario.target[0], SETTLING_TOLERANCE),
+            "max_abs_x1x2": float(np.max(np.abs(x[:, 0] * x[:, 1]))),
+            "final_error": float(abs(x[-1, 0] - scenario.target[0])),
+            "solve_ms_median": float(np.median(data["solve_ms"])),
+            "solve_ms_max": float(np.max(data["solve_ms"])),
+            "fallbacks": sum(s.startswith("fallback") for s in data["status"]),
+            "offline_reference": {k: offline_summary[k] for k in ("settling_step", "max_abs_x1x2")},
+        }
+        if lockstep:
+            summary["max_deviation_from_offline"] = float(np.max(np.abs(x - offline.x)))
+        metrics["runs"][name] = summary
+        (out / f"{name}.json").write_text(json.dumps({**data, "summary": summary}))
+        t = np.arange(len(x)) * data["sample_time"]
+        traces.append(Trace(f"{name.replace('_', ' ')} (mu={run_mu:g})", t, x, np.array(data["u"]),
+                            np.array(data["y_a"])))
+        print(f"demo: {name}: settled at step {summary['settling_step']}, max|x1x2| = {summary['max_abs_x1x2']:.4f}, "
+              f"solve median {summary['solve_ms_median']:.1f} ms", flush=True)
+    phase_portrait(traces, out / "phase_portrait.png", target_state=[scenario.target[0], 0.0],
+                   title=f"Van der Pol through ROS 2 ({metrics['mode']}), y_t = {scenario.target[0]:g}")
+    time_series(traces, out / "time_series.png", target=scenario.target, title="States and input (ROS 2 demo)")
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("out"), help="output directory")
+    ap.add_argument("--config", type=Path, help="ROS 2 params file (default: the shipped van_der_pol.yaml)")
+    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--lockstep", action="store_true", help="plant advances per command (fast, deterministic)")
+    ap.add_argument("--timeout", type=float, default=180.0, help="seconds allowed per run")
+    args = ap.parse_args(argv)
+    try:
+        run_demo(args.out, args.config or default_config_path(), args.steps, args.lockstep, args.timeout)
+    except NmpcError as exc:
+        print(f"demo: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"demo: wrote {args.out}/metrics.json, phase_portrait.png, time_series.png")
+    return 0

@@ -1,0 +1,49 @@
+"""Child node processes for the demo and the tests: own process group, stopped by PID."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+class NodeProcess:
+    """`python -m nmpc_avoid_ros <command> ...` in its own process group, output to a log file."""
+
+    def __init__(self, command: str, args: list[str], env: dict[str, str], log_dir: Path) -> None:
+        log_dir.mkdir(parents=True, exist_ok=True)
+        self.command = command
+        self.log_path = log_dir / f"{command}-{time.monotonic_ns()}.log"
+        self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen([sys.executable, "-m", "nmpc_avoid_ros", command, *args], env=env,
+                                     stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def send(self, sig: int) -> None:
+        """Send sig to this child's own process group (never to anything else)."""
+        if self.alive():
+            os.killpg(self.proc.pid, sig)
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
+        """Signal the group and wait; SIGKILL the group if it does not exit in time. Returns the exit code."""
+        try:
+            self.send(sig)
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            return self.proc.wait(5)
+        finally:
+            self._log.close()
+
+    def output(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text()
