@@ -128,16 +128,20 @@ class NmpcController:
             raise ConfigError(f"expected {self.nlp.layout.n_keep_in} keep-in flags, got {flags.size}")
         self._keep_in_active = flags
 
-    def update_settings(self, **changes: float | Sequence[float]) -> None:
-        """Change run-time fields (mu, kappa, weights); structural fields raise ConfigError."""
+    def checked_settings(self, **changes: float | Sequence[float]) -> ControllerSettings:
+        """The settings with run-time fields changed, validated but not applied (ConfigError says why)."""
         structural = sorted(set(changes) - RUNTIME_FIELDS)
         if structural:
             raise ConfigError(f"changing {', '.join(structural)} needs a new controller (NLP rebuild)")
         new = self.settings.replace(**changes)
         for name, size in (("state_weights", self.model.n), ("input_weights", self.model.m)):
             if len(getattr(new, name)) != size:
-                raise ConfigError(f"{name} needs {size} values")
-        self.settings = new
+                raise ConfigError(f"{name} needs {size} values, got {len(getattr(new, name))}")
+        return new
+
+    def update_settings(self, **changes: float | Sequence[float]) -> None:
+        """Change run-time fields (mu, kappa, weights) for the next step; nothing is rebuilt."""
+        self.settings = self.checked_settings(**changes)
 
     def reset(self) -> None:
         """Forget the last plan (the next step starts cold)."""

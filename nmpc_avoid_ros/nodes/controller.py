@@ -85,6 +85,7 @@ class ControllerNode(Node):
         self.state: np.ndarray | None = None
         self.state_time: float | None = None  # node-clock seconds of the last good state
         self.state_solved = True  # lockstep: has the latest state been answered?
+        self.started = self.now()
         self.last_result: StepResult | None = None
         self.last_command = np.zeros(self.m)
         self.counts = {"samples": 0, "fallbacks": 0, "rejected_inputs": 0, "deadline_overruns": 0, "stale": 0}
@@ -156,12 +157,10 @@ class ControllerNode(Node):
                     raise ValueError(f"stale_behavior must be one of {STALE_BEHAVIORS}")
                 elif name in ("state_timeout", "log_throttle") and not (math.isfinite(value) and value >= 0):
                     raise ValueError(f"{name} must be a finite number >= 0")
-            if changes:
-                self.controller.settings.replace(**changes)  # validates, raises ConfigError with a reason
+            new_settings = self.controller.checked_settings(**changes)  # ConfigError carries the reason
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        if changes:
-            self.controller.update_settings(**changes)
+        self.controller.settings = new_settings
         for param in params:
             if param.name == "safe_input":
                 self.safe_input = np.asarray(param.value, float)
@@ -179,12 +178,16 @@ class ControllerNode(Node):
     def on_sample(self) -> None:
         now = self.now()
         self.counts["samples"] += 1
-        stale = self.state is None or (not self.lockstep and now - self.state_time > self.state_timeout)
-        if stale or self.target is None:
-            if self.lockstep:
-                return  # the plant waits for our answer; nothing to command yet
-            self.publish_safe(now, "no state yet" if self.state is None else
-                              ("state stale" if stale else "waiting for a target"), error=stale)
+        if self.target is None or self.state is None:
+            # idle until the loop can close: no command, so a waiting plant does not start drifting
+            if not self.lockstep:
+                waiting = "a target" if self.target is None else "a first state"
+                level = DiagnosticStatus.ERROR if self.target is not None and now - self.started > \
+                    self.state_timeout else DiagnosticStatus.WARN
+                self.publish_diagnostics(level, f"idle: waiting for {waiting}", None, 0.0)
+            return
+        if not self.lockstep and now - self.state_time > self.state_timeout:
+            self.publish_safe("state stale")
             return
         regions = self.store.active(now)  # drops expired regions
         if self.store.revision != self.regions_revision:
@@ -209,7 +212,8 @@ class ControllerNode(Node):
         level = DiagnosticStatus.WARN if result.is_fallback else DiagnosticStatus.OK
         self.publish_diagnostics(level, result.status, result, latency)
 
-    def publish_safe(self, now: float, why: str, error: bool) -> None:
+    def publish_safe(self, why: str) -> None:
+        """No solve: command the configured safe behaviour and report an ERROR."""
         behavior = self.stale_behavior
         if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
             u = self.last_result.u_a
@@ -221,13 +225,10 @@ class ControllerNode(Node):
             u = np.zeros(self.m)
         self.pub_command.publish(vector_to_array(u))
         self.last_command = np.asarray(u, float)
-        if error:
-            self.counts["stale"] += 1
-        level = DiagnosticStatus.ERROR if error else DiagnosticStatus.WARN
-        self.publish_diagnostics(level, f"{why}: applying {behavior}", None, 0.0)
-        if error:
-            self.get_logger().error(f"{why}: applying {behavior} {np.asarray(u).tolist()}",
-                                    throttle_duration_sec=self.throttle)
+        self.counts["stale"] += 1
+        self.publish_diagnostics(DiagnosticStatus.ERROR, f"{why}: applying {behavior}", None, 0.0)
+        self.get_logger().error(f"{why}: applying {behavior} {self.last_command.tolist()}",
+                                throttle_duration_sec=self.throttle)
 
     def publish_prediction(self, result: StepResult) -> None:
         plane = self.controller.settings.plane

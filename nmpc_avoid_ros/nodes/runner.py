@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import traceback
 from collections.abc import Callable
 
 import rclpy
@@ -42,7 +43,12 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.05)
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except (KeyboardInterrupt, ExternalShutdownException):
+                raise
+            except Exception:  # a bug in one callback must not stop the node: log it loudly, go on
+                node.get_logger().error(f"callback failed:\n{traceback.format_exc()}", throttle_duration_sec=1.0)
         if on_stop is not None:
             on_stop(node)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -45,5 +45,7 @@ class NodeProcess:
             self._log.close()
 
     def output(self) -> str:
-        self._log.flush()
+        """Everything the process printed so far (also after stop)."""
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text()
