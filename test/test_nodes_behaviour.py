@@ -22,9 +22,9 @@ from visualization_msgs.msg import Marker, MarkerArray
 from nmpc_avoid_ros.core.closed_loop import DiscretePlant, run_closed_loop
 from nmpc_avoid_ros.core.controller import NmpcController
 from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.regions import Ellipse, Polygon, rotated_box
 from nmpc_avoid_ros.core.settings import ControllerSettings
-from nmpc_avoid_ros.ros.markers import delete_marker, ellipse_marker
+from nmpc_avoid_ros.ros.markers import delete_marker, ellipse_marker, regions_to_markers
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 
 PARAMS = ["--ros-args", "--params-file", str(CONFIG)]
@@ -280,3 +280,26 @@ def test_help_and_bad_configuration_exit_codes(command, ros_graph):
     res = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", command, *PARAMS, "-p", bad], env=env,
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "configuration error" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_mobile_robot_reaches_its_goal_among_obstacles_published_as_markers(ros_graph):
+    _, _, start, probe = ros_graph
+    p = probe()
+    listen = Listener(p)
+    config = str(CONFIG.parent / "mobile_robot.yaml")
+    regions = [Ellipse((-3.0, -2.5), (1.2, 1.2), frame="output"), Ellipse((3.0, 2.0), (1.0, 1.5), 0.5, "output"),
+               rotated_box((0.0, 0.0), (2.0, 1.0), 0.6, "output"),
+               Polygon(((4.5, 4.5), (6.5, 4.5), (5.5, 6.0)), "output")]
+    listen.obstacles.publish(regions_to_markers(regions))
+    listen.publish_target(8.0, 6.0)
+    args = ["--ros-args", "--params-file", config, "-p", "lockstep:=true"]
+    ctrl = start("controller", *args, "-p", "max_solve_time:=2.0")
+    plant = start("plant", *args, "-p", "wait_for_subscribers:=2")
+    assert p.spin_until(lambda: len(listen.states) >= 121, 120), (ctrl.output(), plant.output())
+    xs = np.array(listen.states[:121])
+    assert np.hypot(xs[-1, 0] - 8.0, xs[-1, 1] - 6.0) < 0.05
+    assert max(max(r.depth(x[:2]) for r in regions) for x in xs) <= 0.01
+    assert listen.diags[-1]["regions"] == "4"
+    # the straight line from start to goal crosses the box: the obstacles changed the path
+    assert rotated_box((0.0, 0.0), (2.0, 1.0), 0.6).depth((0.0, 0.0)) > 0
+    assert plant.stop() == 0 and ctrl.stop() == 0

@@ -214,6 +214,10 @@ class Ros2McapWriter:
         self._file: _UnbufferedFile | None = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise BagError(f"cannot create {self.path}: cannot create its directory {self.path.parent}: "
+                           f"{exc.strerror or exc}") from None
+        try:
             self._file = _UnbufferedFile(self.path, overwrite)
         except FileExistsError:
             raise BagError(f"cannot create {self.path}: the file exists (refusing to overwrite it)") from None
@@ -248,6 +252,11 @@ class Ros2McapWriter:
     @property
     def finished(self) -> bool:
         return self._finished
+
+    @property
+    def failed(self) -> bool:
+        """True after an OS error (full disk, I/O error): the file cannot be written any more."""
+        return self._failed is not None
 
     @property
     def bytes_written(self) -> int:

@@ -1,0 +1,355 @@
+"""`recorder`: writes the package's topics into an MCAP bag, as rosbag2 would (readable by ros2 bag, Foxglove).
+
+    ros2 run nmpc_avoid_ros recorder --ros-args -p output:=bags/demo.mcap
+
+Messages are taken as serialized CDR bytes (no deserialize / re-serialize) and written with the
+node-clock receive time as log time (ns; sim time when use_sim_time) and the publisher's source
+timestamp as publish time. Topic types come from the ROS graph: a timer polls it and subscribes
+as soon as a wanted topic has a publisher (the `types` parameter, ``topic=pkg/msg/Type``, lets a
+topic be subscribed before any publisher exists). QoS: `latched_topics` (target, obstacles)
+reliable + transient local, depth 1; the others reliable, depth `queue_depth`; downgraded to
+volatile / best effort only when a publisher offers that, so that every publisher matches.
+
+`output`: a .mcap path, or a directory (then rosbag2 naming ``<dir>/<dir>_0.mcap``). With
+`split_size` or `split_duration`, files are numbered ``<stem>_0.mcap``, ``<stem>_1.mcap``, ...
+An unwritable path or a full disk is reported and ends the node with a non-zero exit status;
+SIGINT / SIGTERM drain the queues, finish the file and log the message count per topic.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+from rcl_interfaces.msg import ParameterType
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.subscription import Subscription
+
+from ..bag.mcap_io import COMPRESSIONS, DEFAULT_CHUNK_SIZE, BagError, Ros2McapWriter
+from ..core.errors import ConfigError
+from ..ros.parameters import ParamSpec, declare
+from .runner import run_node
+
+DEFAULT_TOPICS = ["state", "command", "target", "obstacles", "/diagnostics", "controller/prediction", "/clock"]
+#: topics never recorded by `topics: ["*"]`
+GRAPH_TOPICS = ("/rosout", "/parameter_events")
+
+RECORDER_SPECS = [
+    ParamSpec("output", "", "the .mcap file or a directory; empty: bags/run-<YYYYmmdd-HHMMSS>.mcap",
+              ParameterType.PARAMETER_STRING, read_only=True),
+    ParamSpec("overwrite", False, "replace an existing output file instead of refusing to start",
+              ParameterType.PARAMETER_BOOL, read_only=True),
+    ParamSpec("topics", DEFAULT_TOPICS, "topics to record (relative names resolve in the node's namespace); "
+              "[\"*\"]: every topic except /rosout and /parameter_events", ParameterType.PARAMETER_STRING_ARRAY,
+              read_only=True),
+    ParamSpec("types", None, "topic=pkg/msg/Type entries: subscribe before a publisher exists (the graph's type "
+              "wins when they differ)", ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
+    ParamSpec("latched_topics", ["target", "obstacles"], "topics subscribed transient local with depth 1",
+              ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
+    ParamSpec("queue_depth", 1000, "subscription depth of the other topics, messages (a slow disk must lose "
+              "nothing)", ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(1, 1_000_000)),
+    ParamSpec("compression", "zstd", "chunk compression", ParameterType.PARAMETER_STRING, read_only=True,
+              choices=tuple(COMPRESSIONS)),
+    ParamSpec("chunk_size", DEFAULT_CHUNK_SIZE, "uncompressed bytes per MCAP chunk", ParameterType.PARAMETER_INTEGER,
+              read_only=True, int_range=(64, 2**31 - 1)),
+    ParamSpec("flush_period", 5.0, "close the chunk being filled at least this often, s (bounds what a crash "
+              "loses; 0 = only when full)", ParameterType.PARAMETER_DOUBLE, read_only=True,
+              float_range=(0.0, 86400.0)),
+    ParamSpec("split_size", 0, "start a new file after this many bytes; 0 = never", ParameterType.PARAMETER_INTEGER,
+              read_only=True, int_range=(0, 2**62)),
+    ParamSpec("split_duration", 0.0, "start a new file after this much log time, s; 0 = never",
+              ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.0, 1e9)),
+    ParamSpec("discovery_period", 0.25, "period of the graph poll that finds new topics, s",
+              ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.01, 60.0)),
+]
+
+
+def output_paths(output: str, split: bool, now: datetime | None = None):
+    """File name of the i-th file (i = 0, 1, ...) for the `output` parameter; see the module doc."""
+    if not output:
+        output = f"bags/run-{(now or datetime.now()).strftime('%Y%m%d-%H%M%S')}.mcap"
+    path = Path(output).expanduser()
+    if path.suffix == ".mcap":
+        if not split:
+            return lambda i: path
+        return lambda i: path.with_name(f"{path.stem}_{i}.mcap")
+    return lambda i: path / f"{path.name}_{i}.mcap"
+
+
+def get_message(type_name: str) -> type:
+    """The Python class of ``pkg/msg/Type`` (ImportError / AttributeError / ValueError when unknown)."""
+    parts = type_name.split("/")
+    if len(parts) != 3 or parts[1] != "msg":
+        raise ValueError(f"not a message type name: {type_name!r}")
+    return getattr(importlib.import_module(f"{parts[0]}.msg"), parts[2])
+
+
+@dataclass
+class _Topic:
+    name: str
+    type_name: str
+    msg_class: type
+    qos: QoSProfile
+    subscription: Subscription | None = None
+    count: int = 0
+    warned: set[str] = field(default_factory=set)
+
+
+class RecorderNode(Node):
+    """Subscribes raw to the wanted topics and appends the bytes to a `Ros2McapWriter`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("recorder", **kwargs)
+        values = declare(self, RECORDER_SPECS)
+        self.compression = str(values["compression"])
+        if self.compression not in COMPRESSIONS:
+            raise ConfigError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {self.compression!r}")
+        self.chunk_size = int(values["chunk_size"])
+        self.overwrite = bool(values["overwrite"])
+        self.queue_depth = int(values["queue_depth"])
+        self.split_size = int(values["split_size"])
+        self.split_duration_ns = round(float(values["split_duration"]) * 1e9)
+        wanted = list(values["topics"] or [])
+        self.record_all = wanted == ["*"]
+        self.wanted = [] if self.record_all else [self.resolve_topic_name(t) for t in wanted]
+        self.latched = {self.resolve_topic_name(t) for t in values["latched_topics"] or []}
+        self.type_hints: dict[str, str] = {}
+        for entry in values["types"] or []:
+            topic, sep, type_name = entry.partition("=")
+            if not sep or not topic.strip() or type_name.count("/") != 2:
+                raise ConfigError(f"types entries are topic=pkg/msg/Type, got {entry!r}")
+            self.type_hints[self.resolve_topic_name(topic.strip())] = type_name.strip()
+
+        self.path_of = output_paths(str(values["output"]), bool(self.split_size or self.split_duration_ns))
+        self.files: list[Path] = []
+        self.topics: dict[str, _Topic] = {}
+        self.unrecordable: dict[str, str] = {}
+        self.error: str | None = None
+        self.file_start_ns: int | None = None
+        self.writer: Ros2McapWriter = self._open_file()  # an unwritable output fails here, before any topic
+
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.discovery_timer = self.create_timer(float(values["discovery_period"]), self.discover, clock=steady)
+        flush_period = float(values["flush_period"])
+        self.flush_timer = self.create_timer(flush_period, self.flush, clock=steady) if flush_period > 0 else None
+        self.discover()
+        self.get_logger().info(
+            f"recording {'every topic' if self.record_all else ', '.join(self.wanted)} into {self.files[0]} "
+            f"(compression {self.compression}, chunks of {self.chunk_size} B)")
+
+    # ---- files
+
+    def _open_file(self) -> Ros2McapWriter:
+        path = self.path_of(len(self.files))
+        writer = Ros2McapWriter(path, compression=self.compression, chunk_size=self.chunk_size,
+                                overwrite=self.overwrite)
+        self.files.append(path)
+        self.file_start_ns = None
+        for topic in self.topics.values():
+            writer.add_topic(topic.name, topic.type_name)
+        return writer
+
+    def _split_due(self, now_ns: int) -> bool:
+        if self.split_size and self.writer.bytes_written >= self.split_size:
+            return True
+        return bool(self.split_duration_ns and self.file_start_ns is not None
+                    and now_ns - self.file_start_ns >= self.split_duration_ns)
+
+    def _next_file(self) -> None:
+        self.writer.finish()
+        self.get_logger().info(f"finished {self.files[-1]} ({self.writer.bytes_written} B); next file")
+        self.writer = self._open_file()
+
+    def fail(self, exc: Exception) -> None:
+        """A write failed (full disk, I/O error): report it and end the node (non-zero exit)."""
+        if self.error is None:
+            self.error = str(exc)
+            self.get_logger().error(f"recording stopped: {exc}")
+            self.context.try_shutdown()  # ends run_node's spin loop; main() then exits with status 1
+
+    # ---- topics
+
+    def _qos_for(self, topic: str) -> QoSProfile:
+        if topic in self.latched:
+            qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        else:
+            qos = QoSProfile(depth=self.queue_depth, history=HistoryPolicy.KEEP_LAST,
+                             reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+        for info in self.get_publishers_info_by_topic(topic):
+            offered = info.qos_profile
+            if offered.reliability == ReliabilityPolicy.BEST_EFFORT:
+                qos.reliability = ReliabilityPolicy.BEST_EFFORT
+            if offered.durability == DurabilityPolicy.VOLATILE:
+                qos.durability = DurabilityPolicy.VOLATILE
+        return qos
+
+    def discover(self) -> None:
+        """Subscribe to every wanted topic that now has a type (from the graph, else from `types`)."""
+        if self.error is not None:
+            return
+        graph = dict(self.get_topic_names_and_types())
+        names = [t for t in graph if t not in GRAPH_TOPICS] if self.record_all else self.wanted
+        for name in names:
+            if name in self.unrecordable:
+                continue
+            types = graph.get(name, [])
+            hint = self.type_hints.get(name)
+            if not types and hint is None:
+                continue
+            type_name = types[0] if types else hint
+            topic = self.topics.get(name)
+            if topic is None:
+                self._subscribe(name, type_name, types, hint)
+            elif types:
+                self._check(topic, types)
+
+    def _subscribe(self, name: str, type_name: str, types: list[str], hint: str | None) -> None:
+        log = self.get_logger()
+        if len(types) > 1:
+            log.warning(f"{name} is published with several types {types}; recording {type_name}")
+        if hint is not None and types and hint != type_name:
+            log.warning(f"{name}: the graph says {type_name}, the types parameter {hint}; recording {type_name}")
+        try:
+            msg_class = get_message(type_name)
+        except (AttributeError, ImportError, ValueError) as exc:
+            self.unrecordable[name] = f"type {type_name} is not installed ({exc})"
+            log.error(f"cannot record {name}: {self.unrecordable[name]}")
+            return
+        try:
+            self.writer.add_topic(name, type_name)
+        except BagError as exc:
+            if self.writer.failed:
+                self.fail(exc)
+            else:  # e.g. no .msg definition for this type: skip the topic, loudly
+                self.unrecordable[name] = str(exc)
+                log.error(f"cannot record {name}: {exc}")
+            return
+        topic = _Topic(name, type_name, msg_class, self._qos_for(name))
+        topic.subscription = self.create_subscription(msg_class, name, self._callback(topic), topic.qos, raw=True)
+        self.topics[name] = topic
+        log.info(f"recording {name} [{type_name}] ({_describe(topic.qos)})")
+
+    def _check(self, topic: _Topic, types: list[str]) -> None:
+        """A new publisher may need a weaker subscription to match (volatile, best effort): resubscribe."""
+        if topic.type_name not in types and "type" not in topic.warned:
+            topic.warned.add("type")
+            self.get_logger().error(f"{topic.name} is now published as {types}, recorded as {topic.type_name}: "
+                                    "those publishers are not recorded")
+        offered = self._qos_for(topic.name)
+        qos = QoSProfile(depth=topic.qos.depth, history=topic.qos.history, reliability=topic.qos.reliability,
+                         durability=topic.qos.durability)
+        if offered.reliability == ReliabilityPolicy.BEST_EFFORT:
+            qos.reliability = ReliabilityPolicy.BEST_EFFORT
+        if offered.durability == DurabilityPolicy.VOLATILE:
+            qos.durability = DurabilityPolicy.VOLATILE
+        if qos.reliability != topic.qos.reliability or qos.durability != topic.qos.durability:
+            self.destroy_subscription(topic.subscription)
+            topic.qos = qos
+            topic.subscription = self.create_subscription(topic.msg_class, topic.name, self._callback(topic), qos,
+                                                          raw=True)
+            self.get_logger().warning(f"{topic.name}: a publisher offers weaker QoS; now subscribed {_describe(qos)}")
+
+    def _callback(self, topic: _Topic):
+        def on_message(data: bytes, info: dict) -> None:
+            self.record(topic, data, info)
+
+        return on_message
+
+    # ---- writing
+
+    def record(self, topic: _Topic, data: bytes, info: dict) -> None:
+        """Append one serialized message (log time = node clock now, ns)."""
+        if self.error is not None:
+            return
+        now = self.get_clock().now().nanoseconds
+        try:
+            if self._split_due(now):
+                self._next_file()
+            if self.file_start_ns is None:
+                self.file_start_ns = now
+            self.writer.write(topic.name, data, now, info.get("source_timestamp") or now,
+                              info.get("publication_sequence_number") or 0)
+        except BagError as exc:
+            self.fail(exc)
+            return
+        topic.count += 1
+
+    def flush(self) -> None:
+        if self.error is None:
+            try:
+                self.writer.flush()
+            except BagError as exc:
+                self.fail(exc)
+
+    def drain(self, idle: float = 0.2, limit: float = 5.0) -> int:
+        """Take what is still queued in the subscriptions (stop after `idle` s without one, or `limit` s)."""
+        taken = 0
+        start = last = time.monotonic()
+        while self.error is None and time.monotonic() - last < idle and time.monotonic() - start < limit:
+            got = False
+            for topic in list(self.topics.values()):
+                sub = topic.subscription
+                while sub is not None:
+                    with sub.handle:
+                        item = sub.handle.take_message(sub.msg_type, True)
+                    if item is None:
+                        break
+                    self.record(topic, item[0], item[1])
+                    taken += 1
+                    got = True
+            if got:
+                last = time.monotonic()
+            else:
+                time.sleep(0.01)
+        return taken
+
+    def close(self) -> None:
+        """On SIGINT / SIGTERM: drain, finish the file, log the counts."""
+        drained = self.drain() if self.context.ok() else 0
+        try:
+            self.writer.finish()
+        except BagError as exc:
+            self.error = self.error or str(exc)
+        log = self.get_logger()
+        total = sum(t.count for t in self.topics.values())
+        counts = ", ".join(f"{t.name} {t.count}" for t in self.topics.values()) or "no topic seen"
+        missing = [t for t in self.wanted if t not in self.topics]
+        log.info(f"recorded {total} messages into {', '.join(map(str, self.files))}"
+                 f"{f' ({drained} drained at exit)' if drained else ''}: {counts}"
+                 f"{'; never published: ' + ', '.join(missing) if missing else ''}")
+        for name, reason in self.unrecordable.items():
+            log.error(f"not recorded: {name}: {reason}")
+        if self.error is not None:
+            log.error(f"the recording is incomplete: {self.error}")
+
+
+def _describe(qos: QoSProfile) -> str:
+    return (f"{'reliable' if qos.reliability == ReliabilityPolicy.RELIABLE else 'best effort'}, "
+            f"{'transient local' if qos.durability == DurabilityPolicy.TRANSIENT_LOCAL else 'volatile'}, "
+            f"depth {qos.depth}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the recorder until SIGINT/SIGTERM; 0 when the bag is complete, 1 after a write error, 2 on bad config."""
+    nodes: list[RecorderNode] = []
+
+    def factory() -> RecorderNode:
+        nodes.append(RecorderNode())
+        return nodes[-1]
+
+    status = run_node(factory, argv, "recorder", __doc__, on_stop=lambda node: node.close())
+    if status == 0 and nodes and nodes[0].error is not None:
+        print(f"recorder: error: {nodes[0].error}", file=sys.stderr)
+        return 1
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
