@@ -56,3 +56,21 @@ def test_module_dispatch_lists_commands_and_runs_figures(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["runs"]["with_avoidance"]["max_abs_x1x2"] <= 2.001
     assert metrics["runs"]["without_avoidance"]["max_abs_x1x2"] > 9
+
+
+def test_readme_documents_every_parameter_executable_and_topic():
+    from pathlib import Path
+
+    from nmpc_avoid_ros.cli import COMMANDS
+    from nmpc_avoid_ros.nodes.controller import NODE_SPECS
+    from nmpc_avoid_ros.nodes.plant import PLANT_SPECS
+    from nmpc_avoid_ros.ros.parameters import settings_specs
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    for spec in settings_specs() + NODE_SPECS + PLANT_SPECS:
+        assert f"| `{spec.name}` |" in readme, spec.name
+    for command in COMMANDS:
+        assert f"| `{command}` |" in readme, command
+    for topic in ("state", "command", "target", "obstacles", "/diagnostics", "~/prediction", "/clock"):
+        assert f"| `{topic}` |" in readme, topic
+    assert "make demo" in readme and "make test" in readme

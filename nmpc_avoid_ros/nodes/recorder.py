@@ -321,7 +321,8 @@ class RecorderNode(Node):
         total = sum(t.count for t in self.topics.values())
         counts = ", ".join(f"{t.name} {t.count}" for t in self.topics.values()) or "no topic seen"
         missing = [t for t in self.wanted if t not in self.topics]
-        log.info(f"recorded {total} messages into {', '.join(map(str, self.files))}"
+        verb = "received" if self.error is not None else "recorded"
+        log.info(f"{verb} {total} messages into {', '.join(map(str, self.files))}"
                  f"{f' ({drained} drained at exit)' if drained else ''}: {counts}"
                  f"{'; never published: ' + ', '.join(missing) if missing else ''}")
         for name, reason in self.unrecordable.items():
