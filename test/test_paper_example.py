@@ -148,3 +148,14 @@ def test_runtime_weight_change_needs_no_rebuild_and_structural_change_is_refused
         controller.update_settings(horizon=10)
     with pytest.raises(ValueError, match="mu"):
         controller.update_settings(mu=-1.0)
+
+
+def test_general_hard_inequalities_are_part_of_Z_and_lambda_scales_the_steady_state():
+    """`constraints: ['x1 <= 3']`: the loop never exceeds it; (x_a, u_a) in lambda Z gives x_a1 <= 3 lambda."""
+    settings = ControllerSettings(constraints=("x1 <= 3",))
+    controller = NmpcController(settings)
+    run = run_closed_loop(controller, [-5.0, 0.0], [5.0], 60, "euler")
+    assert run.status == ["ok"] * 60
+    assert np.max(run.x[:, 0]) <= 3 + 1e-6
+    assert run.y_a[-1, 0] == pytest.approx(3 * settings.steady_state_scale, abs=1e-4)
+    assert run.x[-1, 0] == pytest.approx(3 * settings.steady_state_scale, abs=1e-3)
