@@ -83,13 +83,13 @@ class _Plan:
 def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int) -> np.ndarray:
     """A finite float vector of exactly `size` entries, else InputError naming the problem."""
     try:
-        arr = np.asarray(values, dtype=float).ravel()
+        arr = np.array(values, dtype=float).ravel()  # a copy, never a view of the caller's buffer
     except (TypeError, ValueError):
-        raise InputError(f"{name}: expected {size} numbers, got {values!r:.80}") from None
+        raise InputError(f"{name}: data is not a sequence of numbers") from None
     if arr.size != size:
         raise InputError(f"{name}: expected {size} values, got {arr.size}")
     if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name}: contains NaN or infinite values {arr.tolist()}")
+        raise InputError(f"{name}: contains NaN or infinite values")
     return arr
 
 

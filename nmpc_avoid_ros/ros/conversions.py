@@ -13,6 +13,7 @@ import numpy as np
 from builtin_interfaces.msg import Duration, Time
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
+from ..core.controller import validate_vector
 from ..core.errors import InputError
 
 _NS_PER_S = 1_000_000_000
@@ -27,15 +28,8 @@ def array_to_vector(msg: Float64MultiArray, size: int, name: str) -> np.ndarray:
     data = getattr(msg, "data", None)
     if data is None:
         raise InputError(f"{name}: message has no data field")
-    try:
-        values = np.array(data, dtype=float).reshape(-1)  # copies: the message buffer may be reused
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: data is not a sequence of numbers") from None
-    if values.size != size:
-        raise InputError(f"{name}: expected {size} values, got {values.size}")
-    if not np.all(np.isfinite(values)):
-        raise InputError(f"{name}: contains NaN or infinite values")
-    return values
+    # validate_vector copies (the message buffer may be reused) and names what is wrong
+    return validate_vector(name, data, size)
 
 
 def vector_to_array(values: Sequence[float] | np.ndarray, label: str | None = None) -> Float64MultiArray:
