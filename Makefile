@@ -22,11 +22,11 @@ demo: $(STAMP)
 	$(BIN)/python -m nmpc_avoid_ros demo --out $(OUT)
 
 test: $(STAMP)
-	$(BIN)/ruff check nmpc_avoid_ros test bench
+	$(BIN)/ruff check nmpc_avoid_ros test
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 lint: $(STAMP)
-	$(BIN)/ruff check nmpc_avoid_ros test bench
+	$(BIN)/ruff check nmpc_avoid_ros test
 
 clean:
 	rm -rf $(OUT) build install log *.egg-info
