@@ -5,7 +5,7 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "nmpc_avoid_ros"
-EXECUTABLES = ("controller", "plant", "simulate", "figures", "demo")
+EXECUTABLES = ("controller", "plant", "recorder", "simulate", "figures", "analyze", "replay", "demo")
 
 setup(
     name=PACKAGE,

@@ -13,6 +13,9 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "controller": ("nmpc_avoid_ros.nodes.controller", "ROS 2 node: the NMPC controller"),
     "plant": ("nmpc_avoid_ros.nodes.plant", "ROS 2 node: plant simulator (real time or lockstep)"),
+    "recorder": ("nmpc_avoid_ros.nodes.recorder", "ROS 2 node: records topics into an MCAP bag (rosbag2 format)"),
+    "analyze": ("nmpc_avoid_ros.tools.analyze", "bags -> metrics.json and figures, without a ROS graph"),
+    "replay": ("nmpc_avoid_ros.tools.replay", "republish a bag, or re-solve the controller on it (--resolve)"),
     "simulate": ("nmpc_avoid_ros.tools.simulate", "offline closed loop of one configuration -> JSON"),
     "figures": ("nmpc_avoid_ros.tools.figures", "the paper's example offline -> figures + metrics"),
     "demo": ("nmpc_avoid_ros.tools.demo", "the paper's example through ROS 2 topics -> out/"),
@@ -34,6 +37,9 @@ def _entry(command: str):
 
 controller_main = _entry("controller")
 plant_main = _entry("plant")
+recorder_main = _entry("recorder")
+analyze_main = _entry("analyze")
+replay_main = _entry("replay")
 simulate_main = _entry("simulate")
 figures_main = _entry("figures")
 demo_main = _entry("demo")

@@ -12,7 +12,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 COLCON = Path(sys.executable).parent / "colcon"
-EXECUTABLES = ("controller", "plant", "simulate", "figures", "demo")
+EXECUTABLES = ("controller", "plant", "recorder", "simulate", "figures", "analyze", "replay", "demo")
 
 
 @pytest.fixture(scope="module")

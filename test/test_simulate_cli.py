@@ -64,10 +64,11 @@ def test_readme_documents_every_parameter_executable_and_topic():
     from nmpc_avoid_ros.cli import COMMANDS
     from nmpc_avoid_ros.nodes.controller import NODE_SPECS
     from nmpc_avoid_ros.nodes.plant import PLANT_SPECS
+    from nmpc_avoid_ros.nodes.recorder import RECORDER_SPECS
     from nmpc_avoid_ros.ros.parameters import settings_specs
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    for spec in settings_specs() + NODE_SPECS + PLANT_SPECS:
+    for spec in settings_specs() + NODE_SPECS + PLANT_SPECS + RECORDER_SPECS:
         assert f"| `{spec.name}` |" in readme, spec.name
     for command in COMMANDS:
         assert f"| `{command}` |" in readme, command

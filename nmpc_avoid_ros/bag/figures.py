@@ -85,7 +85,11 @@ def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float 
 def time_series(traces: Sequence[Trace], path: Path, *, state_names: Sequence[str] = ("x1", "x2"),
                 input_names: Sequence[str] = ("u",), target: Sequence[float] | None = None,
                 title: str = "Time series") -> Path:
-    """Fig. 2: each state and input over time (inputs as steps), y_a dashed on the first state."""
+    """Fig. 2: each state and input over time (inputs as steps), y_a dashed on the first state.
+
+    u and y_a are drawn at the first len(u) times (K of them when x has K+1 rows, i.e. when the
+    state after the last sample is known; K when it is not).
+    """
     n_rows = len(state_names) + len(input_names)
     fig, axes = plt.subplots(n_rows, 1, figsize=(7.5, 2.0 * n_rows + 0.6), dpi=130, sharex=True)
     axes = np.atleast_1d(axes)
@@ -94,10 +98,11 @@ def time_series(traces: Sequence[Trace], path: Path, *, state_names: Sequence[st
         for row in range(len(state_names)):
             axes[row].plot(trace.t, trace.x[:, row], color=color, lw=1.6, label=trace.label)
         if trace.y_a is not None and len(trace.y_a):
-            axes[0].plot(trace.t[:-1], trace.y_a[:, 0], "--", color=color, lw=1.0, label=f"y_a ({trace.label})")
+            axes[0].plot(trace.t[:len(trace.y_a)], trace.y_a[:, 0], "--", color=color, lw=1.0,
+                         label=f"y_a ({trace.label})")
         for col in range(len(input_names)):
-            axes[len(state_names) + col].step(trace.t[:-1], trace.u[:, col], where="post", color=color, lw=1.6,
-                                              label=trace.label)
+            axes[len(state_names) + col].step(trace.t[:len(trace.u)], trace.u[:, col], where="post", color=color,
+                                              lw=1.6, label=trace.label)
     if target is not None:
         axes[0].axhline(target[0], color="gray", ls=":", lw=1.0, label="target")
     for ax, name in zip(axes, [*state_names, *input_names]):

@@ -445,6 +445,8 @@ class BagReader:
         statistics: Statistics | None = None
         seen: Counter[int] = Counter()
         path = report.path
+        report.chunks = report.bad_chunks = report.messages = 0  # a second pass counts afresh
+        report.warnings.clear()
 
         def emit(record: Message) -> BagMessage | None:
             channel = channels.get(record.channel_id)

@@ -37,6 +37,8 @@ from ..ros.parameters import ParamSpec, declare
 from .runner import run_node
 
 DEFAULT_TOPICS = ["state", "command", "target", "obstacles", "/diagnostics", "controller/prediction", "/clock"]
+#: messages taken per callback beyond the one the executor delivers (fairness between topics)
+BATCH = 200
 #: topics never recorded by `topics: ["*"]`
 GRAPH_TOPICS = ("/rosout", "/parameter_events")
 
@@ -98,6 +100,9 @@ class _Topic:
     qos: QoSProfile
     subscription: Subscription | None = None
     count: int = 0
+    publishers: int = 0
+    last_sequence: int | None = None
+    lost: int = 0
     warned: set[str] = field(default_factory=set)
 
 
@@ -175,20 +180,19 @@ class RecorderNode(Node):
 
     # ---- topics
 
-    def _qos_for(self, topic: str) -> QoSProfile:
-        if topic in self.latched:
-            qos = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        else:
-            qos = QoSProfile(depth=self.queue_depth, history=HistoryPolicy.KEEP_LAST,
-                             reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+    def _qos_for(self, topic: str, current: QoSProfile | None = None) -> QoSProfile:
+        """DESIGN.md QoS of a topic, weakened where a publisher (or the `current` subscription) is weaker:
+        best effort if any publisher is, volatile (with depth `queue_depth`) if any publisher is."""
+        best_effort = current is not None and current.reliability == ReliabilityPolicy.BEST_EFFORT
+        volatile = topic not in self.latched or (current is not None and
+                                                 current.durability == DurabilityPolicy.VOLATILE)
         for info in self.get_publishers_info_by_topic(topic):
-            offered = info.qos_profile
-            if offered.reliability == ReliabilityPolicy.BEST_EFFORT:
-                qos.reliability = ReliabilityPolicy.BEST_EFFORT
-            if offered.durability == DurabilityPolicy.VOLATILE:
-                qos.durability = DurabilityPolicy.VOLATILE
-        return qos
+            best_effort |= info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+            volatile |= info.qos_profile.durability == DurabilityPolicy.VOLATILE
+        return QoSProfile(
+            depth=self.queue_depth if volatile else 1, history=HistoryPolicy.KEEP_LAST,
+            reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.VOLATILE if volatile else DurabilityPolicy.TRANSIENT_LOCAL)
 
     def discover(self) -> None:
         """Subscribe to every wanted topic that now has a type (from the graph, else from `types`)."""
@@ -209,6 +213,8 @@ class RecorderNode(Node):
                 self._subscribe(name, type_name, types, hint)
             elif types:
                 self._check(topic, types)
+            if name in self.topics:
+                self.topics[name].publishers = self.count_publishers(name)
 
     def _subscribe(self, name: str, type_name: str, types: list[str], hint: str | None) -> None:
         log = self.get_logger()
@@ -242,14 +248,9 @@ class RecorderNode(Node):
             topic.warned.add("type")
             self.get_logger().error(f"{topic.name} is now published as {types}, recorded as {topic.type_name}: "
                                     "those publishers are not recorded")
-        offered = self._qos_for(topic.name)
-        qos = QoSProfile(depth=topic.qos.depth, history=topic.qos.history, reliability=topic.qos.reliability,
-                         durability=topic.qos.durability)
-        if offered.reliability == ReliabilityPolicy.BEST_EFFORT:
-            qos.reliability = ReliabilityPolicy.BEST_EFFORT
-        if offered.durability == DurabilityPolicy.VOLATILE:
-            qos.durability = DurabilityPolicy.VOLATILE
+        qos = self._qos_for(topic.name, topic.qos)
         if qos.reliability != topic.qos.reliability or qos.durability != topic.qos.durability:
+            self.take(topic, 1 << 30)  # keep what the old subscription already holds
             self.destroy_subscription(topic.subscription)
             topic.qos = qos
             topic.subscription = self.create_subscription(topic.msg_class, topic.name, self._callback(topic), qos,
@@ -259,8 +260,22 @@ class RecorderNode(Node):
     def _callback(self, topic: _Topic):
         def on_message(data: bytes, info: dict) -> None:
             self.record(topic, data, info)
+            self.take(topic, BATCH)  # what else is queued, without one executor round per message
 
         return on_message
+
+    def take(self, topic: _Topic, limit: int) -> int:
+        """Take up to `limit` queued messages of one topic straight from its subscription and record them."""
+        sub = topic.subscription
+        taken = 0
+        while sub is not None and taken < limit and self.error is None:
+            with sub.handle:  # the executor's own way to take a message (rclpy Executor._take_subscription)
+                item = sub.handle.take_message(sub.msg_type, True)
+            if item is None:
+                break
+            self.record(topic, item[0], item[1])
+            taken += 1
+        return taken
 
     # ---- writing
 
@@ -280,6 +295,19 @@ class RecorderNode(Node):
             self.fail(exc)
             return
         topic.count += 1
+        sequence = info.get("publication_sequence_number")
+        if topic.publishers == 1 and sequence:  # one writer: its sequence numbers are consecutive
+            if topic.last_sequence is not None and sequence > topic.last_sequence + 1:
+                topic.lost += sequence - topic.last_sequence - 1
+                self.get_logger().error(
+                    f"{topic.name}: {topic.lost} messages lost so far (publisher sequence jumped from "
+                    f"{topic.last_sequence} to {sequence}); the recorder falls behind or the QoS drops them",
+                    throttle_duration_sec=2.0)
+            elif topic.last_sequence is not None and sequence < topic.last_sequence:
+                topic.publishers = -1  # a restarted or a second writer: unknown until the next graph poll
+            topic.last_sequence = sequence
+        else:
+            topic.last_sequence = None
 
     def flush(self) -> None:
         if self.error is None:
@@ -295,15 +323,9 @@ class RecorderNode(Node):
         while self.error is None and time.monotonic() - last < idle and time.monotonic() - start < limit:
             got = False
             for topic in list(self.topics.values()):
-                sub = topic.subscription
-                while sub is not None:
-                    with sub.handle:
-                        item = sub.handle.take_message(sub.msg_type, True)
-                    if item is None:
-                        break
-                    self.record(topic, item[0], item[1])
-                    taken += 1
-                    got = True
+                n = self.take(topic, 1 << 30)
+                taken += n
+                got = got or n > 0
             if got:
                 last = time.monotonic()
             else:
@@ -325,6 +347,9 @@ class RecorderNode(Node):
         log.info(f"{verb} {total} messages into {', '.join(map(str, self.files))}"
                  f"{f' ({drained} drained at exit)' if drained else ''}: {counts}"
                  f"{'; never published: ' + ', '.join(missing) if missing else ''}")
+        for topic in self.topics.values():
+            if topic.lost:
+                log.error(f"{topic.name}: {topic.lost} messages were published but never reached the recorder")
         for name, reason in self.unrecordable.items():
             log.error(f"not recorded: {name}: {reason}")
         if self.error is not None:

@@ -4,8 +4,9 @@
 
 Starts plant and controller as separate processes for each run, publishes the target and the
 (empty) obstacle set on their topics, collects what the nodes publish, and writes
-`metrics.json`, `phase_portrait.png`, `time_series.png` and one JSON per run to DIR, next to the
-offline reference of the same configuration (and, in lockstep, how far the two differ).
+a bag per run (`with_avoidance.mcap`, `without_avoidance.mcap`), then analyses the bags into
+`metrics.json`, `phase_portrait.png`, `time_series.png`, next to the offline reference of the same
+configuration (and, in lockstep, how far the two differ); one JSON per run as the demo saw it.
 """
 
 from __future__ import annotations
@@ -19,19 +20,25 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bag.figures import Trace, phase_portrait, time_series
+from ..bag.figures import Trace
 from ..core.closed_loop import settling_step
 from ..core.errors import NmpcError
 from ..core.settings import default_config_path
+from .analyze import analyze
 from .processes import NodeProcess
 from .simulate import SETTLING_TOLERANCE, load_scenario, simulate
 
 RUNS = (("with_avoidance", None), ("without_avoidance", 0.0))
+#: the recorder subscribes to these at once (before their publishers appear), so no sample is missed
+RECORDED_TYPES = ["state=std_msgs/msg/Float64MultiArray", "command=std_msgs/msg/Float64MultiArray",
+                  "target=std_msgs/msg/Float64MultiArray", "obstacles=visualization_msgs/msg/MarkerArray",
+                  "/diagnostics=diagnostic_msgs/msg/DiagnosticArray", "controller/prediction=nav_msgs/msg/Path",
+                  "/clock=rosgraph_msgs/msg/Clock"]
 
 
 def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env: dict[str, str], log_dir: Path,
-                 timeout: float) -> dict:
-    """One closed loop through DDS; returns x [K+1, n], u [K, m], y_a, solve times, statuses."""
+                 timeout: float, bag: Path) -> dict:
+    """One closed loop through DDS, recorded into `bag`; returns x [K+1, n], u [K, m], y_a, solve times, statuses."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float64MultiArray
@@ -68,13 +75,22 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
     plant_args = [*ros_args, "-p", f"lockstep:={str(lockstep).lower()}"]
     if lockstep:
         plant_args += ["-p", "integration:=euler", "-p", "wait_for_subscribers:=2"]
-    procs = [NodeProcess("controller", ctrl_args, env, log_dir)]
+    if lockstep:
+        plant_args[-1] = "wait_for_subscribers:=3"  # controller, this demo and the recorder
+    recorder_args = ["--ros-args", "-p", f"output:={bag}", "-p", "overwrite:=true", "-p",
+                     f"types:={json.dumps(RECORDED_TYPES)}"]
+    recorder = NodeProcess("recorder", recorder_args, env, log_dir)
+    procs = [recorder, NodeProcess("controller", ctrl_args, env, log_dir)]
     try:
         target_pub.publish(Float64MultiArray(data=[float(v) for v in scenario.target]))
         deadline = time.monotonic() + timeout
-        # start the plant once we hear the controller, so no sample's diagnostics are missed
-        while node.count_publishers("/diagnostics") < 1 and time.monotonic() < deadline:
+        # start the plant once the controller is heard and the recorder listens, so nothing is missed
+        while time.monotonic() < deadline and not (
+                node.count_publishers("/diagnostics") >= 1 and node.count_subscribers("/diagnostics") >= 2
+                and node.count_subscribers("command") >= 1 and node.count_subscribers("state") >= 2):
             executor.spin_once(timeout_sec=0.05)
+            if not recorder.alive():
+                raise NmpcError(f"the recorder exited:\n{recorder.output()[-2000:]}")
         procs.append(NodeProcess("plant", plant_args, env, log_dir))
         if lockstep:
             needed = lambda: len(states) >= steps + 1 and len(samples) >= steps  # noqa: E731
@@ -89,7 +105,7 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
             raise NmpcError(f"the loop did not complete {steps} steps in {timeout:.0f} s "
                             f"({len(states)} states, {len(samples)} samples)")
     finally:
-        codes = [p.stop() for p in procs]
+        codes = [p.stop() for p in reversed(procs)]  # plant, controller, then the recorder finishes the bag
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
@@ -123,7 +139,7 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
     for name, mu in RUNS:
         run_mu = scenario.settings.mu if mu is None else mu
         print(f"demo: {name} (mu={run_mu:g}), {'lockstep' if lockstep else 'real time'} ...", flush=True)
-        data = _collect_run(config, mu, steps, lockstep, env, out / "logs", timeout)
+        data = _collect_run(config, mu, steps, lockstep, env, out / "logs", timeout, (out / f"{name}.mcap").resolve())
         x = np.array(data["x"])
         offline, offline_summary = simulate(load_scenario(config, steps=steps, mu=run_mu, plant="euler"))
         summary = {
@@ -145,9 +161,10 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
                             np.array(data["y_a"])))
         print(f"demo: {name}: settled at step {summary['settling_step']}, max|x1x2| = {summary['max_abs_x1x2']:.4f}, "
               f"solve median {summary['solve_ms_median']:.1f} ms", flush=True)
-    phase_portrait(traces, out / "phase_portrait.png", target_state=[scenario.target[0], 0.0],
-                   title=f"Van der Pol through ROS 2 ({metrics['mode']}), y_t = {scenario.target[0]:g}")
-    time_series(traces, out / "time_series.png", target=scenario.target, title="States and input (ROS 2 demo)")
+    # the figures and metrics come from the bags, as a user would make them
+    bags = [out / f"{name}.mcap" for name, _ in RUNS]
+    report = analyze(bags, out, config, labels=[t.label for t in traces])
+    metrics["bags"] = report["bags"]
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
 
@@ -165,5 +182,6 @@ def main(argv: list[str] | None = None) -> int:
     except NmpcError as exc:
         print(f"demo: error: {exc}", file=sys.stderr)
         return 1
-    print(f"demo: wrote {args.out}/metrics.json, phase_portrait.png, time_series.png")
+    print(f"demo: wrote {args.out}/with_avoidance.mcap, without_avoidance.mcap, metrics.json, phase_portrait.png, "
+          "time_series.png")
     return 0

@@ -1,0 +1,194 @@
+"""Runs read back from bags: the controller's samples, the regions over time, metrics.
+
+The controller publishes one diagnostic per solved sample carrying the state it solved on, the
+command, y_a and the solve time (all as exact float reprs), so a bag holds everything needed to
+re-plot, score and re-solve a run without a ROS graph.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from ..core.closed_loop import settling_step
+from ..core.expressions import parse_keep_in
+from ..core.models import make_model
+from ..core.regions import Region
+from ..core.settings import ControllerSettings
+from .mcap_io import Bag, BagError, read_bag
+
+SETTLING_TOLERANCE = 0.05
+TOPIC_SUFFIXES = ("state", "command", "target", "obstacles")
+
+
+@dataclass
+class RecordedRun:
+    """The solved samples of one controller in a bag.
+
+    Attributes: t [K] s since the first sample; x [K, n] states solved on; u [K, m] commands;
+    y_a [K, p]; targets [K, p] (in force at each sample); regions [K] (tuples of core regions in
+    force at each sample); solve_ms [K]; status [K]; last diagnostic counters; final state [n]
+    (the state after the last sample, if recorded).
+    """
+
+    path: Path
+    finished: bool
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    y_a: np.ndarray
+    targets: np.ndarray
+    regions: list[tuple[Region, ...]]
+    solve_ms: np.ndarray
+    status: list[str]
+    counters: dict[str, int] = field(default_factory=dict)
+    final_state: np.ndarray | None = None
+    sample_time: float = math.nan
+
+    @property
+    def states_with_final(self) -> np.ndarray:
+        return self.x if self.final_state is None else np.vstack([self.x, self.final_state])
+
+
+def _topic(bag: Bag, suffix: str) -> str | None:
+    """The bag's topic named `suffix` (relative names may carry a namespace): /state, /robot1/state."""
+    for name in sorted(bag.topics):
+        if name == f"/{suffix}" or name.endswith(f"/{suffix}"):
+            return name
+    return None
+
+
+def load_run(path: str | Path, progress: bool = False) -> RecordedRun:
+    """Read a bag into a RecordedRun; BagError if it holds no solved controller sample."""
+    from ..ros.markers import RegionStore  # duck-typed on decoded messages
+
+    reader = read_bag(path)
+    bag_topics: dict[str, list[tuple[int, Any]]] = {}
+    for i, m in enumerate(reader, 1):
+        bag_topics.setdefault(m.topic, []).append((m.log_time_ns, m.message))
+        if progress and i % 20000 == 0:
+            print(f"  {Path(path).name}: {i} messages read", file=sys.stderr, flush=True)
+    bag = Bag(Path(path), bag_topics, reader.types, reader.finished, reader.reports)
+    diags = bag.topics.get("/diagnostics", [])
+    samples: list[tuple[int, dict[str, str]]] = []
+    for stamp, msg in diags:
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if "solve_time_ms" in values and "state" in values:
+                samples.append((stamp, values))
+    if not samples:
+        raise BagError(f"{path}: no controller samples (no /diagnostics with solve results); "
+                       f"topics: {', '.join(sorted(bag.topics)) or 'none'}")
+    events: list[tuple[int, int, str, Any]] = []
+    for order, suffix in enumerate(("target", "obstacles")):
+        name = _topic(bag, suffix)
+        for stamp, msg in bag.topics.get(name, []) if name else []:
+            events.append((stamp, order, suffix, msg))
+    events.sort(key=lambda e: (e[0], e[1]))
+    store = RegionStore(max_markers_per_message=10**6)
+    target: list[float] | None = None
+    targets, regions = [], []
+    cursor = 0
+    for stamp, _ in samples:
+        while cursor < len(events) and events[cursor][0] <= stamp:
+            _, _, kind, msg = events[cursor]
+            if kind == "target":
+                target = [float(v) for v in msg.data]
+            else:
+                store.apply(msg, events[cursor][0] * 1e-9)
+            cursor += 1
+        targets.append(target if target is not None else [math.nan])
+        regions.append(store.active(stamp * 1e-9))
+    first = samples[0][0]
+    state_topic = _topic(bag, "state")
+    final_state = None
+    if state_topic and bag.topics.get(state_topic):
+        # the state after the last sample: the next different state message after the one solved on
+        # (log times cannot order them: the plant may answer a command before its diagnostic lands)
+        recorded = [np.array([float(v) for v in msg.data]) for _, msg in bag.topics[state_topic]]
+        last = np.array(json.loads(samples[-1][1]["state"]))
+        hits = [i for i, x in enumerate(recorded) if x.shape == last.shape and np.array_equal(x, last)]
+        later = [x for x in recorded[hits[-1] + 1:] if not np.array_equal(x, last)] if hits else []
+        final_state = later[0] if later else None
+    t = np.array([(stamp - first) * 1e-9 for stamp, _ in samples])
+    width = max(len(v) for v in targets)
+    return RecordedRun(
+        path=Path(path), finished=bag.finished, t=t,
+        x=np.array([json.loads(v["state"]) for _, v in samples]),
+        u=np.array([json.loads(v["command"]) for _, v in samples]),
+        y_a=np.array([json.loads(v["y_a"]) for _, v in samples]),
+        targets=np.array([v + [math.nan] * (width - len(v)) for v in targets]),
+        regions=regions,
+        solve_ms=np.array([float(v["solve_time_ms"]) for _, v in samples]),
+        status=[v["status"] for _, v in samples],
+        counters={k: int(samples[-1][1][k]) for k in ("fallbacks", "rejected_inputs", "deadline_overruns", "stale",
+                                                       "samples") if k in samples[-1][1]},
+        final_state=final_state,
+        sample_time=float(np.median(np.diff(t))) if len(t) > 1 else math.nan,
+    )
+
+
+def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any]:
+    """Settling, overshoot, final error, penetration/clearance, solve-time statistics, counters."""
+    model = make_model(settings.model)
+    xs = run.states_with_final
+    us = np.vstack([run.u, run.u[-1:]]) if len(xs) > len(run.u) else run.u
+    out_fn = model.output
+    y = np.array([np.asarray(out_fn(x, u)).ravel() for x, u in zip(xs, us)])
+    target = run.targets[-1]
+    metrics: dict[str, Any] = {"bag": str(run.path), "finished": run.finished, "samples": len(run.x),
+                               "target": target.tolist()}
+    if np.all(np.isfinite(target)):
+        err = np.linalg.norm(y - target, axis=1)
+        step = settling_step(err, 0.0, SETTLING_TOLERANCE)
+        metrics["settling_step"] = step
+        metrics["settling_time"] = None if step is None else float(step * settings.sample_time)
+        metrics["final_error"] = float(err[-1])
+        start = y[0]
+        span = target - start
+        with np.errstate(divide="ignore", invalid="ignore"):
+            progress = (y - start) / np.where(np.abs(span) > 1e-12, span, np.nan)
+        metrics["overshoot"] = float(max(0.0, np.nanmax(progress) - 1.0)) if np.any(np.isfinite(progress)) else 0.0
+    # penetration: keep_in expressions (g > 0 outside the keep-in set) and obstacles (g > 0 inside)
+    xsym, usym = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
+    keep = [parse_keep_in(text, model.symbol_table(xsym, usym)).g for text in settings.keep_in]
+    keep_fn = ca.Function("g", [xsym, usym], [ca.vertcat(*keep) if keep else ca.SX(0, 1)])
+    depths = []
+    for k, (x, u) in enumerate(zip(xs, us)):
+        g = list(np.asarray(keep_fn(x, u)).ravel())
+        regions = run.regions[min(k, len(run.regions) - 1)]
+        for region in regions:
+            plane = settings.plane if region.frame == "state" else settings.output_plane
+            point = x if region.frame == "state" else y[k]
+            g.append(region.depth((point[plane[0]], point[plane[1]])))
+        depths.append(max(g) if g else -math.inf)
+    metrics["max_penetration"] = float(max(0.0, max(depths)))
+    metrics["min_clearance"] = float(-max(depths)) if math.isfinite(max(depths)) else None
+    if model.n >= 2:
+        metrics["max_abs_x1x2"] = float(np.max(np.abs(xs[:, 0] * xs[:, 1])))
+    metrics["solve_ms"] = {"median": float(np.median(run.solve_ms)), "p99": float(np.percentile(run.solve_ms, 99)),
+                           "max": float(np.max(run.solve_ms))}
+    metrics["deadline_overruns"] = int(np.sum(run.solve_ms > settings.sample_time * 1e3))
+    metrics["fallbacks"] = sum(s.startswith("fallback") for s in run.status)
+    metrics["rejected_inputs"] = run.counters.get("rejected_inputs", 0)
+    metrics["stale_samples"] = run.counters.get("stale", 0)
+    return metrics
+
+
+def union_regions(runs: Sequence[RecordedRun]) -> list[Region]:
+    """Every distinct region that was in force at some sample of some run (for drawing)."""
+    seen: list[Region] = []
+    for run in runs:
+        for regions in run.regions:
+            for r in regions:
+                if r not in seen:
+                    seen.append(r)
+    return seen

@@ -1,0 +1,81 @@
+"""`analyze`: bags -> metrics.json and the paper's figures, without a running ROS graph.
+
+    python -m nmpc_avoid_ros analyze out/with_avoidance.mcap out/without_avoidance.mcap --out out/analysis
+
+Per bag: settling step and time, overshoot, final error, maximum penetration into any avoided
+region and minimum clearance, solve-time median/p99/max, deadline overruns, fallbacks, rejected
+inputs, and whether the file was finished. Several bags are overlaid in the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..bag.analysis import load_run, run_metrics, union_regions
+from ..bag.figures import Trace, phase_portrait, time_series
+from ..bag.mcap_io import BagError
+from ..core.errors import NmpcError
+from ..core.models import make_model
+from ..core.settings import ControllerSettings, default_config_path, load_params_file
+
+
+def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: list[str] | None = None) -> dict:
+    """Read every bag, write DIR/metrics.json, phase_portrait.png and time_series.png."""
+    config = config or default_config_path()
+    settings = ControllerSettings.from_params(load_params_file(config).section("controller"))
+    model = make_model(settings.model)
+    labels = labels or [b.stem.replace("_", " ") for b in bags]
+    runs, results = [], []
+    for bag, label in zip(bags, labels):
+        print(f"analyze: reading {bag} ...", file=sys.stderr, flush=True)
+        run = load_run(bag, progress=True)
+        if not run.finished:
+            print(f"analyze: {bag}: the file was not finished; using the complete chunks recovered",
+                  file=sys.stderr)
+        runs.append((label, run))
+        results.append({"label": label, **run_metrics(run, settings)})
+    out.mkdir(parents=True, exist_ok=True)
+    traces = []
+    for label, run in runs:
+        t = run.t if run.final_state is None else np.append(run.t, run.t[-1] + settings.sample_time)
+        traces.append(Trace(label, t, run.states_with_final, run.u, run.y_a, union_regions([run])))
+    paper_region = model.name == "van_der_pol" and any("x1*x2" in k.replace(" ", "") for k in settings.keep_in)
+    target = runs[0][1].targets[-1].tolist()
+    lo, hi = settings.state_min, settings.state_max
+    target_state = [target[0], 0.0] if model.name == "van_der_pol" else target[:2]
+    phase_portrait(traces, out / "phase_portrait.png", product_bound=2.0 if paper_region else None,
+                   target_state=target_state, xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]),
+                   title=f"Phase portrait from {len(bags)} bag(s)")
+    time_series(traces, out / "time_series.png", state_names=model.state_names, input_names=model.input_names,
+                target=target, title="States, input and y_a from the bag(s)")
+    report = {"config": str(config), "bags": results}
+    (out / "metrics.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="analyze", description=__doc__.split("\n\n")[0])
+    ap.add_argument("bags", nargs="+", type=Path, help="MCAP bags (files, or directories of split files)")
+    ap.add_argument("--out", type=Path, required=True, help="output directory")
+    ap.add_argument("--config", type=Path, help="params file of the runs (default: the shipped van_der_pol.yaml)")
+    ap.add_argument("--labels", nargs="+", help="legend labels, one per bag")
+    args = ap.parse_args(argv)
+    if args.labels and len(args.labels) != len(args.bags):
+        print("analyze: error: give one label per bag", file=sys.stderr)
+        return 2
+    try:
+        report = analyze(args.bags, args.out, args.config, args.labels)
+    except (BagError, NmpcError) as exc:
+        print(f"analyze: error: {exc}", file=sys.stderr)
+        return 1
+    for r in report["bags"]:
+        print(f"analyze: {r['label']}: settled at step {r.get('settling_step')}, max penetration "
+              f"{r['max_penetration']:.4g}, solve median {r['solve_ms']['median']:.1f} ms, fallbacks {r['fallbacks']}"
+              + ("" if r["finished"] else " (file not finished)"))
+    print(f"analyze: wrote {args.out}/metrics.json, phase_portrait.png, time_series.png")
+    return 0

@@ -1,0 +1,131 @@
+"""The demo's bags: read back independently, analysed, re-solved; broken files give clear errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosgraph import ros_env
+
+from nmpc_avoid_ros.bag.analysis import load_run
+from nmpc_avoid_ros.bag.mcap_io import load_bag
+
+RUNS = {"with_avoidance": 1e8, "without_avoidance": 0.0}
+
+
+def cli(*args: str, env: dict | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory):
+    """`demo --lockstep` once for the module: two recorded paper runs, analysed."""
+    out = tmp_path_factory.mktemp("demo")
+    env = ros_env(60 + (hash(str(out)) % 30), out / "ros_logs")
+    res = cli("demo", "--out", str(out), "--lockstep", env=env, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    return out
+
+
+def test_demo_leaves_bags_metrics_and_figures(demo_out):
+    for name in ("with_avoidance.mcap", "without_avoidance.mcap", "metrics.json", "phase_portrait.png",
+                 "time_series.png"):
+        assert (demo_out / name).stat().st_size > 1000, name
+
+
+@pytest.mark.parametrize("name", RUNS)
+def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo_out, name, paper):
+    with AnyReader([demo_out / f"{name}.mcap"]) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        states = [list(reader.deserialize(raw, c.msgtype).data) for c, _, raw in reader.messages()
+                  if c.topic == "/state"]
+    assert types == {
+        "/state": "std_msgs/msg/Float64MultiArray", "/command": "std_msgs/msg/Float64MultiArray",
+        "/target": "std_msgs/msg/Float64MultiArray", "/obstacles": "visualization_msgs/msg/MarkerArray",
+        "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray", "/controller/prediction": "nav_msgs/msg/Path",
+        "/clock": "rosgraph_msgs/msg/Clock"}
+    assert counts["/target"] == 1 and counts["/obstacles"] == 1
+    # lockstep: one command, one prediction, one diagnostic per state answered, one clock tick per state
+    assert counts["/command"] == counts["/controller/prediction"] == counts["/diagnostics"]
+    assert counts["/state"] >= 51 and counts["/clock"] == counts["/state"]
+    assert counts["/command"] in (counts["/state"], counts["/state"] - 1)
+    # the decoded states are what the plant published: the offline loop of the same configuration
+    np.testing.assert_allclose(np.array(states[:51]), paper(RUNS[name], "euler").x, atol=1e-12)
+
+
+def test_analyze_of_the_paper_bags_matches_simulate(demo_out, paper, tmp_path):
+    res = cli("analyze", str(demo_out / "with_avoidance.mcap"), str(demo_out / "without_avoidance.mcap"),
+              "--out", str(tmp_path))
+    assert res.returncode == 0, res.stderr
+    metrics = {b["bag"].rsplit("/", 1)[-1]: b for b in json.loads((tmp_path / "metrics.json").read_text())["bags"]}
+    for name, mu in RUNS.items():
+        offline = paper(mu, "euler")
+        from nmpc_avoid_ros.core.closed_loop import max_abs_product, settling_step
+
+        m = metrics[f"{name}.mcap"]
+        assert m["settling_step"] == settling_step(offline.x[:, 0], 5.0, 0.05)
+        assert m["max_abs_x1x2"] == pytest.approx(max_abs_product(offline.x), abs=1e-9)
+        assert m["fallbacks"] == 0 and m["finished"] is True
+    assert metrics["with_avoidance.mcap"]["max_penetration"] < 1e-3
+    assert metrics["without_avoidance.mcap"]["max_penetration"] > 7
+    assert (tmp_path / "phase_portrait.png").stat().st_size > 10_000
+
+
+def test_replay_resolve_reproduces_the_recorded_commands_and_reports_a_new_tuning(demo_out, tmp_path):
+    res = cli("replay", str(demo_out / "with_avoidance.mcap"), "--resolve", "--json", str(tmp_path / "same.json"))
+    assert res.returncode == 0, res.stderr
+    same = json.loads((tmp_path / "same.json").read_text())["summary"]
+    assert same["samples"] >= 50 and same["max_abs_diff"] <= 1e-6
+    res = cli("replay", str(demo_out / "with_avoidance.mcap"), "--resolve", "--mu", "0", "--json",
+              str(tmp_path / "mu0.json"))
+    assert res.returncode == 0, res.stderr
+    other = json.loads((tmp_path / "mu0.json").read_text())["summary"]
+    assert other["steps_differing"] > 5 and other["max_abs_diff"] > 0.1
+    assert "differ beyond" in res.stdout and "step" in res.stdout
+
+
+def test_truncated_bag_is_recovered_and_said_to_be_unfinished(demo_out, tmp_path):
+    data = (demo_out / "with_avoidance.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    bag = load_bag(cut)
+    assert not bag.finished and any("not finished" in w for w in bag.warnings)
+    full = load_bag(demo_out / "with_avoidance.mcap")
+    assert 0 < bag.message_count <= full.message_count
+    recovered = [list(m.data) for _, m in bag.topics["/state"]]
+    assert recovered == [list(m.data) for _, m in full.topics["/state"]][: len(recovered)]
+    res = cli("analyze", str(cut), "--out", str(tmp_path / "o"))
+    assert res.returncode == 0 and "not finished" in res.stderr + res.stdout
+
+
+@pytest.mark.parametrize("content", [b"", b"not an mcap at all\n" * 10, b"\x89MCAP0\r\n\x01\x02"])
+@pytest.mark.parametrize("tool", ["analyze", "replay"])
+def test_broken_files_get_a_clear_error_not_a_traceback(tmp_path, content, tool):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(content)
+    args = ["analyze", str(bad), "--out", str(tmp_path / "o")] if tool == "analyze" else ["replay", str(bad),
+                                                                                          "--resolve"]
+    res = cli(*args)
+    assert res.returncode == 1
+    assert f"{tool}: error:" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_bag_without_controller_topics_gets_a_clear_error(demo_out, tmp_path):
+    from nmpc_avoid_ros.bag.mcap_io import Ros2McapWriter
+
+    only_state = tmp_path / "state_only.mcap"
+    from std_msgs.msg import Float64MultiArray
+
+    with Ros2McapWriter(only_state) as writer:
+        writer.add_topic("/state", "std_msgs/msg/Float64MultiArray")
+        writer.write_message("/state", Float64MultiArray(data=[1.0, 2.0]), 1)
+    with pytest.raises(Exception, match="no controller samples"):
+        load_run(only_state)
+    res = cli("analyze", str(only_state), "--out", str(tmp_path / "o"))
+    assert res.returncode == 1 and "no controller samples" in res.stderr and "Traceback" not in res.stderr
