@@ -41,6 +41,7 @@ from nmpc_avoid_ros.bag.mcap_io import (
     read_bag,
 )
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
+from nmpc_avoid_ros.tools.processes import NodeProcess
 
 ROOT = Path(__file__).resolve().parents[1]
 FLOATS = "std_msgs/msg/Float64MultiArray"
@@ -50,45 +51,14 @@ FLOATS = "std_msgs/msg/Float64MultiArray"
 # helpers
 
 
-class RecorderProcess:
-    """`python -m nmpc_avoid_ros.nodes.recorder --ros-args ...` in its own process group."""
-
-    def __init__(self, args: list[str], env: dict[str, str], log_dir: Path, preexec_fn=None) -> None:
-        self.log_path = log_dir / f"recorder-{time.monotonic_ns()}.log"
-        self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen([sys.executable, "-m", "nmpc_avoid_ros.nodes.recorder", "--ros-args", *args],
-                                     env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True,
-                                     preexec_fn=preexec_fn)
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 30.0) -> int:
-        """Signal our own process group (by its id), wait; SIGKILL it if it does not exit in time."""
-        try:
-            if self.alive():
-                os.killpg(self.proc.pid, sig)
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-            return self.proc.wait(5)
-        finally:
-            self._log.close()
-
-    def output(self) -> str:
-        if not self._log.closed:
-            self._log.flush()
-        return self.log_path.read_text()
-
-
 @pytest.fixture
 def recorder(ros_graph, tmp_path):
-    """start(*ros_args, preexec_fn=None) -> RecorderProcess in the test's DDS domain; all stopped at the end."""
+    """start(*ros_args, preexec_fn=None) -> the recorder's NodeProcess in the test's domain; all stopped at the end."""
     _domain, env, _start, _probe = ros_graph
-    started: list[RecorderProcess] = []
+    started: list[NodeProcess] = []
 
-    def start(*args: str, preexec_fn=None) -> RecorderProcess:
-        proc = RecorderProcess(list(args), env, tmp_path / "ros_logs", preexec_fn)
+    def start(*args: str, preexec_fn=None) -> NodeProcess:
+        proc = NodeProcess("recorder", ["--ros-args", *args], env, tmp_path / "ros_logs", preexec_fn)
         started.append(proc)
         return proc
 

@@ -7,19 +7,22 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 
 class NodeProcess:
     """`python -m nmpc_avoid_ros <command> ...` in its own process group, output to a log file."""
 
-    def __init__(self, command: str, args: list[str], env: dict[str, str], log_dir: Path) -> None:
+    def __init__(self, command: str, args: list[str], env: dict[str, str], log_dir: Path,
+                 preexec_fn: Callable[[], None] | None = None) -> None:
         log_dir.mkdir(parents=True, exist_ok=True)
         self.command = command
         self.log_path = log_dir / f"{command}-{time.monotonic_ns()}.log"
         self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen([sys.executable, "-m", "nmpc_avoid_ros", command, *args], env=env,
-                                     stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
+                                     stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True,
+                                     preexec_fn=preexec_fn)
 
     @property
     def pid(self) -> int:
@@ -33,7 +36,7 @@ class NodeProcess:
         if self.alive():
             os.killpg(self.proc.pid, sig)
 
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 15.0) -> int:
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 30.0) -> int:
         """Signal the group and wait; SIGKILL the group if it does not exit in time. Returns the exit code."""
         try:
             self.send(sig)
