@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -129,3 +130,24 @@ def test_a_bag_without_controller_topics_gets_a_clear_error(demo_out, tmp_path):
         load_run(only_state)
     res = cli("analyze", str(only_state), "--out", str(tmp_path / "o"))
     assert res.returncode == 1 and "no controller samples" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_replay_republishes_the_recorded_topics_with_their_timing(demo_out, ros_graph):
+    _, _, start, probe = ros_graph
+    p = probe()
+    from std_msgs.msg import Float64MultiArray
+
+    from nmpc_avoid_ros.ros.parameters import STREAM_QOS
+
+    got: list[tuple[float, list[float]]] = []
+    p.node.create_subscription(Float64MultiArray, "state", lambda m: got.append((time.monotonic(), list(m.data))),
+                               STREAM_QOS)
+    bag = load_bag(demo_out / "without_avoidance.mcap")
+    recorded = [list(m.data) for _, m in bag.topics["/state"]]
+    span = (bag.topics["/state"][-1][0] - bag.topics["/state"][0][0]) * 1e-9
+    replay = start("replay", str(demo_out / "without_avoidance.mcap"), "--rate", "0.5", "--wait", "2.0")
+    assert p.spin_until(lambda: len(got) >= len(recorded), 60 + 3 * span), (len(got), replay.output())
+    assert [d for _, d in got] == recorded
+    # rate 0.5: the republished stream takes about twice as long as the recording
+    assert (got[-1][0] - got[0][0]) == pytest.approx(2 * span, rel=0.3, abs=0.1)
+    assert replay.proc.wait(60) == 0 and "published" in replay.output()

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..bag.analysis import RecordedRun, load_run
-from ..bag.mcap_io import BagError, read_bag
+from ..bag.mcap_io import BagError, load_bag
 from ..core.controller import NmpcController
 from ..core.errors import NmpcError
 from ..core.settings import ControllerSettings, default_config_path, load_params_file
@@ -48,38 +48,44 @@ def resolve(run: RecordedRun, settings: ControllerSettings, tolerance: float = 1
     }
 
 
-def republish(bag: Path, rate: float) -> int:
-    """Publish every recorded message on its topic, spaced by its log times divided by `rate`."""
+def republish(bag: Path, rate: float, wait: float = 1.0) -> int:
+    """Publish every recorded message on its topic, spaced by its log times divided by `rate`.
+
+    Publishers are made first and given `wait` seconds to be discovered, so the first messages
+    are not published into an empty graph.
+    """
     import rclpy
 
     from ..ros.parameters import LATCHED_QOS, STREAM_QOS
 
-    reader = read_bag(bag, decode=False)
+    recorded = load_bag(bag, decode=False)
+    messages = sorted((t, topic, data) for topic, items in recorded.topics.items() for t, data in items)
     rclpy.init()
     node = rclpy.create_node("replay")
     publishers: dict[str, Any] = {}
-    count, start_wall, start_log = 0, None, None
+    count = 0
     try:
-        for m in reader:
-            if m.topic not in publishers:
-                pkg, _, name = m.type_name.replace("/msg/", "/").partition("/")
-                msg_type = getattr(importlib.import_module(f"{pkg}.msg"), name)
-                qos = LATCHED_QOS if m.topic.rsplit("/", 1)[-1] in LATCHED_TOPICS else STREAM_QOS
-                publishers[m.topic] = node.create_publisher(msg_type, m.topic, qos)
-            if start_wall is None:
-                start_wall, start_log = time.monotonic(), m.log_time_ns
-            delay = start_wall + (m.log_time_ns - start_log) * 1e-9 / rate - time.monotonic()
+        for topic, type_name in recorded.types.items():
+            pkg, _, name = type_name.replace("/msg/", "/").partition("/")
+            msg_type = getattr(importlib.import_module(f"{pkg}.msg"), name)
+            qos = LATCHED_QOS if topic.rsplit("/", 1)[-1] in LATCHED_TOPICS else STREAM_QOS
+            publishers[topic] = node.create_publisher(msg_type, topic, qos)
+        time.sleep(wait)
+        start_wall = time.monotonic()
+        for log_time, topic, data in messages:
+            delay = start_wall + (log_time - messages[0][0]) * 1e-9 / rate - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            publishers[m.topic].publish(bytes(m.message))  # the recorded CDR bytes, unchanged
+            publishers[topic].publish(bytes(data))  # the recorded CDR bytes, unchanged
             count += 1
+        time.sleep(min(wait, 1.0))  # let reliable transport deliver the last ones
     except KeyboardInterrupt:
         pass
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
     print(f"replay: published {count} messages on {len(publishers)} topics"
-          + ("" if reader.finished else " (the file was not finished)"))
+          + ("" if recorded.finished else " (the file was not finished)"))
     return 0
 
 
@@ -87,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="replay", description=__doc__.split("\n\n")[0])
     ap.add_argument("bag", type=Path)
     ap.add_argument("--rate", type=float, default=1.0, help="replay speed factor (republish mode)")
+    ap.add_argument("--wait", type=float, default=1.0, help="seconds for discovery before republishing")
     ap.add_argument("--resolve", action="store_true", help="re-solve the controller offline on the bag")
     ap.add_argument("--config", type=Path, help="params file (default: the shipped van_der_pol.yaml)")
     ap.add_argument("--mu", type=float, help="override mu for the re-solve")
@@ -98,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.resolve:
             if not args.rate > 0:
                 raise NmpcError(f"--rate must be positive, got {args.rate}")
-            return republish(args.bag, args.rate)
+            return republish(args.bag, args.rate, args.wait)
         params = load_params_file(args.config or default_config_path()).section("controller")
         params.update({k: v for k, v in (("mu", args.mu), ("kappa", args.kappa)) if v is not None})
         settings = ControllerSettings.from_params(params)
