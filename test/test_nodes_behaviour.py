@@ -236,6 +236,13 @@ def test_garbage_on_every_input_never_stops_the_controller(ros_graph):
         m.scale.x = m.scale.y = sx
         bad_markers.append(m)
     flood = MarkerArray(markers=[Marker(type=Marker.CYLINDER, id=i) for i in range(10_000)])
+
+    def loop_closed() -> bool:  # discovery done both ways: our state reaches it, its command reaches us
+        listen.state_pub.publish(good)
+        p.spin_for(0.1)
+        return bool(listen.commands)
+
+    assert listen.spin_until(loop_closed, 30), ctrl.output()
     n_cmd = len(listen.commands)
     for k in range(10):
         listen.state_pub.publish(good)
