@@ -154,13 +154,19 @@ def lockstep_command(listen: Listener, x: list[float], timeout: float = 20.0) ->
     raise AssertionError(f"no answer to state {x}")
 
 
-def test_param_set_of_mu_and_kappa_takes_effect_at_the_next_sample_and_bad_values_are_refused(ros_graph):
+def controller_with_probe(ros_graph, target: float, *args: str):
+    """A controller alone, the probe acting as its plant: (probe, listener, process), once it listens."""
     _, _, start, probe = ros_graph
     p = probe()
     listen = Listener(p)
-    listen.publish_target(5.0)
-    ctrl = start("controller", *PARAMS, "-p", "lockstep:=true", "-p", "kappa:=5000.0")
+    listen.publish_target(target)
+    ctrl = start("controller", *PARAMS, *args)
     assert listen.spin_until(lambda: p.node.count_subscribers("state") >= 1, 30), ctrl.output()
+    return p, listen, ctrl
+
+
+def test_param_set_of_mu_and_kappa_takes_effect_at_the_next_sample_and_bad_values_are_refused(ros_graph):
+    p, listen, ctrl = controller_with_probe(ros_graph, 5.0, "-p", "lockstep:=true", "-p", "kappa:=5000.0")
     u_first, diag = lockstep_command(listen, [-5.0, 0.0])
     assert diag["kappa"] == "5000" and diag["mu"] == "1e+08"  # -p overrides the params file
     client = AsyncParameterClient(p.node, "controller")
@@ -189,12 +195,7 @@ def test_param_set_of_mu_and_kappa_takes_effect_at_the_next_sample_and_bad_value
 
 
 def test_stale_state_triggers_the_safe_behaviour_and_an_error_then_control_resumes(ros_graph):
-    _, _, start, probe = ros_graph
-    p = probe()
-    listen = Listener(p)
-    listen.publish_target(1.0)
-    ctrl = start("controller", *PARAMS, "-p", "state_timeout:=0.6", "-p", "sample_time:=0.2")
-    assert listen.spin_until(lambda: p.node.count_subscribers("state") >= 1, 30), ctrl.output()
+    p, listen, ctrl = controller_with_probe(ros_graph, 1.0, "-p", "state_timeout:=0.6", "-p", "sample_time:=0.2")
 
     def feed(seconds: float) -> None:
         end = p.node.get_clock().now().nanoseconds + seconds * 1e9
@@ -221,12 +222,7 @@ def test_stale_state_triggers_the_safe_behaviour_and_an_error_then_control_resum
 
 
 def test_garbage_on_every_input_never_stops_the_controller(ros_graph):
-    _, _, start, probe = ros_graph
-    p = probe()
-    listen = Listener(p)
-    listen.publish_target(1.0)
-    ctrl = start("controller", *PARAMS, "-p", "sample_time:=0.2", "-p", "state_timeout:=5.0")
-    assert listen.spin_until(lambda: p.node.count_subscribers("state") >= 1, 30), ctrl.output()
+    p, listen, ctrl = controller_with_probe(ros_graph, 1.0, "-p", "sample_time:=0.2", "-p", "state_timeout:=5.0")
     good = Float64MultiArray(data=[0.5, 0.0])
     garbage_vectors = [[math.nan, 0.0], [1.0], [], [0.0, 0.0, 0.0], [math.inf, 1.0]]
     bad_markers = []

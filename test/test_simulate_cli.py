@@ -75,3 +75,11 @@ def test_readme_documents_every_parameter_executable_and_topic():
     for topic in ("state", "command", "target", "obstacles", "/diagnostics", "~/prediction", "/clock"):
         assert f"| `{topic}` |" in readme, topic
     assert "make demo" in readme and "make test" in readme
+
+
+def test_params_file_keys_of_the_controller_node_are_exactly_its_declared_parameters():
+    """core.settings accepts node-only keys by name (core cannot import the node): keep the two lists equal."""
+    from nmpc_avoid_ros.core.settings import NODE_ONLY_PARAMETERS
+    from nmpc_avoid_ros.nodes.controller import NODE_SPECS
+
+    assert NODE_ONLY_PARAMETERS == {spec.name for spec in NODE_SPECS} | {"use_sim_time"}

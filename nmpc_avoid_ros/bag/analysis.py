@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,15 +17,12 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ..core.closed_loop import settling_step
+from ..core.closed_loop import SETTLING_TOLERANCE, settling_step
 from ..core.expressions import parse_keep_in
 from ..core.models import make_model
 from ..core.regions import Region
 from ..core.settings import ControllerSettings
-from .mcap_io import Bag, BagError, read_bag
-
-SETTLING_TOLERANCE = 0.05
-TOPIC_SUFFIXES = ("state", "command", "target", "obstacles")
+from .mcap_io import Bag, BagError, load_bag
 
 
 @dataclass
@@ -70,13 +66,7 @@ def load_run(path: str | Path, progress: bool = False) -> RecordedRun:
     """Read a bag into a RecordedRun; BagError if it holds no solved controller sample."""
     from ..ros.markers import RegionStore  # duck-typed on decoded messages
 
-    reader = read_bag(path)
-    bag_topics: dict[str, list[tuple[int, Any]]] = {}
-    for i, m in enumerate(reader, 1):
-        bag_topics.setdefault(m.topic, []).append((m.log_time_ns, m.message))
-        if progress and i % 20000 == 0:
-            print(f"  {Path(path).name}: {i} messages read", file=sys.stderr, flush=True)
-    bag = Bag(Path(path), bag_topics, reader.types, reader.finished, reader.reports)
+    bag = load_bag(path, progress_every=20000 if progress else 0)
     diags = bag.topics.get("/diagnostics", [])
     samples: list[tuple[int, dict[str, str]]] = []
     for stamp, msg in diags:

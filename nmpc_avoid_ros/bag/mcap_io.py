@@ -597,16 +597,20 @@ class Bag:
         return f"{self.path}: {self.message_count} messages in {self.chunks} chunks, {state}; {counts}"
 
 
-def load_bag(path: str | os.PathLike, topics: Iterable[str] | None = None, *, decode: bool = True) -> Bag:
+def load_bag(path: str | os.PathLike, topics: Iterable[str] | None = None, *, decode: bool = True,
+             progress_every: int = 0) -> Bag:
     """Read a whole bag: every topic (also those without messages) -> [(log_time_ns, msg)], sorted by time.
 
     A bag that was not finished is recovered up to its last complete chunk (`finished` False).
+    With `progress_every` > 0, a line goes to stderr every that many messages (long bags).
     Raises BagError for anything that is not a readable MCAP bag.
     """
     reader = read_bag(path, topics, decode=decode)
     per_topic: dict[str, list[tuple[int, Any]]] = {}
-    for m in reader:
+    for i, m in enumerate(reader, 1):
         per_topic.setdefault(m.topic, []).append((m.log_time_ns, m.message))
+        if progress_every and i % progress_every == 0:
+            print(f"  {Path(path).name}: {i} messages read", file=sys.stderr, flush=True)
     for topic in reader.types:
         if reader.topics is None or topic in reader.topics:
             per_topic.setdefault(topic, [])

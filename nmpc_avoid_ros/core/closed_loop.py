@@ -19,6 +19,8 @@ from .models import Model
 from .regions import Region
 
 PLANTS = ("euler", "continuous")
+#: settled: |y - y_t| below this from some sample on, for good (the paper scenario's criterion)
+SETTLING_TOLERANCE = 0.05
 
 
 class ContinuousPlant:

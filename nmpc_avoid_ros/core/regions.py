@@ -226,8 +226,3 @@ class SlotLayout:
             slot = slots[base + i * width: base + (i + 1) * width]
             terms.append(polygon_depth(state_point, output_point, slot, self.max_polygon_vertices))
         return ca.vertcat(*terms)
-
-
-def region_depth(region: Region, point: Sequence[float]) -> float:
-    """Penetration measure g of a region at a plane point (> 0 inside, <= 0 outside)."""
-    return region.depth(point)

@@ -141,7 +141,7 @@ RUNTIME_FIELDS = frozenset({"state_weights", "input_weights", "kappa", "mu", "fe
 
 #: controller-node parameters that are not core settings (see nodes/controller.py)
 NODE_ONLY_PARAMETERS = frozenset({"target", "state_timeout", "stale_behavior", "safe_input", "lockstep",
-                                  "use_sim_time", "obstacle_frame_default", "log_throttle"})
+                                  "use_sim_time", "log_throttle"})
 
 
 def _as_float(name: str, value: Any) -> float:

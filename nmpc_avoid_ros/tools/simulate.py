@@ -15,12 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from ..core.closed_loop import PLANTS, ClosedLoopRun, run_closed_loop, settling_step
+from ..core.closed_loop import PLANTS, SETTLING_TOLERANCE, ClosedLoopRun, run_closed_loop, settling_step
 from ..core.controller import NmpcController
 from ..core.errors import NmpcError
 from ..core.settings import ControllerSettings, default_config_path, load_params_file
-
-SETTLING_TOLERANCE = 0.05
 
 
 @dataclass
