@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("nmpc_avoid_ros.tools.simulate", "offline closed loop of one configuration -> JSON"),
     "figures": ("nmpc_avoid_ros.tools.figures", "the paper's example offline -> figures + metrics"),
     "demo": ("nmpc_avoid_ros.tools.demo", "the paper's example through ROS 2 topics -> out/"),
+    "bench": ("nmpc_avoid_ros.bench.main", "solver paths vs. Opti + IPOPT and do-mpc, one process -> JSON"),
+    "campaign": ("nmpc_avoid_ros.tools.campaign", "Monte Carlo campaign over random scenarios -> JSON + plots"),
 }
 
 
