@@ -17,14 +17,22 @@ import numpy as np
 
 from .errors import ConfigError, InputError
 from .models import Model
-from .nlp import TrackingNlp
+from .nlp import NlpBase, TrackingNlp
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
+from .stagewise import StagewiseNlp
 
-#: IPOPT return statuses after which the solution is used as is
-SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
-#: statuses after which the last iterate may still be used if it is feasible
+#: return statuses after which the solution is used as is (IPOPT, sqpmethod; FATROP reports 0)
+SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
+#: statuses that mean the iteration or time budget cut the solve
 BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
+
+
+def make_nlp(settings: ControllerSettings, model: Model | None = None) -> NlpBase:
+    """The formulation of the settings' solver path: multiple shooting (ipopt) or stage-wise."""
+    if settings.solver == "ipopt":
+        return TrackingNlp(settings, model)
+    return StagewiseNlp(settings, model)
 
 
 @dataclass
@@ -82,9 +90,11 @@ class _Plan:
 
 def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int) -> np.ndarray:
     """A finite float vector of exactly `size` entries, else InputError naming the problem."""
+    if isinstance(values, (str, bytes)):  # numpy would read "1.5" as the number 1.5
+        raise InputError(f"{name}: data is not a sequence of numbers (got a {type(values).__name__})")
     try:
         arr = np.array(values, dtype=float).ravel()  # a copy, never a view of the caller's buffer
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
         raise InputError(f"{name}: data is not a sequence of numbers") from None
     if arr.size != size:
         raise InputError(f"{name}: expected {size} values, got {arr.size}")
@@ -101,13 +111,16 @@ class NmpcController:
 
     def __init__(self, settings: ControllerSettings | None = None, model: Model | None = None) -> None:
         self.settings = settings or ControllerSettings()
-        self.nlp = TrackingNlp(self.settings, model)
+        self.nlp = make_nlp(self.settings, model)
         self.model = self.nlp.model
         self.nlp_builds = 1
         self._regions: tuple[Region, ...] = ()
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
         self._plan: _Plan | None = None
+        # the last iterate of a budget-cut solve that could not be applied: the next sample
+        # continues the optimisation from it (shifted) instead of starting over
+        self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
 
@@ -146,6 +159,7 @@ class NmpcController:
     def reset(self) -> None:
         """Forget the last plan (the next step starts cold)."""
         self._plan = None
+        self._pending = None
 
     # -- the sample --------------------------------------------------------------------------
     def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None) -> StepResult:
@@ -164,26 +178,24 @@ class NmpcController:
             input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
         )
         w0, lam_x0, lam_g0 = self._initial_guess(x, y_t)
-        n_slack = self.nlp.layout.n_slack
-        if n_slack:
-            w0[-n_slack:] = np.asarray(self.nlp.slack_of(w0, par)).ravel()
+        w0 = self.nlp.fill_slacks(w0, par)
         start = time.perf_counter()
-        sol = self.nlp.solver(x0=w0, p=par, lbx=self.nlp.lbx, ubx=self.nlp.ubx, lbg=self.nlp.lbg,
-                              ubg=self.nlp.ubg, lam_x0=lam_x0, lam_g0=lam_g0)
+        w, lam_x, lam_g, stats = self.nlp.solve(w0, par, lam_x0, lam_g0)
         solve_time = time.perf_counter() - start
-        stats = self.nlp.solver.stats()
         solver_status = str(stats.get("return_status", "unknown"))
         iterations = int(stats.get("iter_count", -1))
-        w = np.asarray(sol["x"]).ravel()
-        budget_cut = solver_status in BUDGET_EXHAUSTED
-        usable = np.all(np.isfinite(w)) and (
-            solver_status in SOLVED
-            or (budget_cut and self.nlp.violation(w, par) <= s.feasibility_tolerance)
-        )
+        solved = solver_status in SOLVED
+        budget_cut = solver_status in BUDGET_EXHAUSTED or (not solved and iterations >= s.max_iterations)
+        finite = bool(np.all(np.isfinite(w)))
+        # an unconverged iterate (budget cut, or a stalled SQP line search) is a valid plan when
+        # it is feasible: the paper's recursive feasibility needs feasibility, not optimality
+        usable = finite and (solved or self.nlp.violation(w, par) <= s.feasibility_tolerance)
         if usable:
-            plan = self._accept(x, w, par, np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel())
-            status = "ok" if solver_status in SOLVED else "truncated"
+            self._pending = None
+            plan = self._accept(x, w, par, lam_x, lam_g)
+            status = "ok" if solved else "truncated"
             return self._result(plan, x, 0, status, solver_status, iterations, solve_time, budget_cut)
+        self._pending = (w, lam_x, lam_g) if finite and budget_cut else None
         return self._fallback(x, solver_status, iterations, solve_time, budget_cut)
 
     def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> _Plan:
@@ -195,9 +207,21 @@ class NmpcController:
         return self._plan
 
     def _initial_guess(self, x: np.ndarray, y_t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Shifted previous plan (u(1..N-1), u_a; x(2..N), x_a), else a straight line to y_t."""
+        """Shifted previous plan (u(1..N-1), u_a; x(2..N), x_a), else a straight line to y_t.
+
+        After a budget-cut sample whose iterate could not be applied, that iterate (shifted by
+        one sample) is the guess: the optimisation goes on where the budget stopped it.
+        """
         layout = self.nlp.layout
         N = layout.horizon
+        if self._pending is not None:
+            w, lam_x, lam_g = self._pending
+            U, X, y_a, rest = layout.split_w(w)
+            x_a, u_a = (np.asarray(v).ravel() for v in self.nlp.steady(w))
+            U = np.vstack([U[1:], u_a])
+            X = np.vstack([X[1:], x_a])
+            lam_x, lam_g = self.nlp.shift_duals(lam_x, lam_g, 1)
+            return layout.join_w(U, X, y_a, rest, x0=x), lam_x, lam_g
         plan = self._plan
         if plan is None:
             y_a = np.asarray(y_t, float)
@@ -208,12 +232,13 @@ class NmpcController:
             X = (1 - ramp) * x + ramp * x_a
             U = np.tile(u_a, (N, 1))
             rest = None if layout.closed_form else np.concatenate([x_a, u_a])
-            return layout.join_w(U, X, y_a, rest), np.zeros(layout.n_w), np.zeros(self.nlp.lbg.size)
+            return layout.join_w(U, X, y_a, rest, x0=x), np.zeros(layout.n_w), np.zeros(self.nlp.lbg.size)
         shift = plan.age + 1
         U = np.vstack([plan.inputs[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
         X = np.vstack([plan.states[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
-        return layout.join_w(U, X, plan.y_a, rest), plan.lam_x, plan.lam_g
+        lam_x, lam_g = self.nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
+        return layout.join_w(U, X, plan.y_a, rest, x0=x), lam_x, lam_g
 
     def _steady_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.model.steady_state is not None:

@@ -29,7 +29,7 @@ from .errors import ConfigError
 from .expressions import parse_keep_in
 from .models import Model, make_model
 from .regions import SlotLayout
-from .settings import ControllerSettings
+from .settings import SOLVERS, ControllerSettings
 
 
 @dataclass
@@ -65,8 +65,9 @@ class NlpLayout:
         rest = None if self.closed_form else w[start:start + n + m]
         return U, X, y_a, rest
 
-    def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: np.ndarray | None) -> np.ndarray:
-        """Inverse of split_w; the slacks are zero (set them with TrackingNlp.slack_of)."""
+    def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: np.ndarray | None,
+               x0: np.ndarray | None = None) -> np.ndarray:
+        """Inverse of split_w (x0 is not a variable here); the slacks are zero (see NlpBase.fill_slacks)."""
         parts = [np.ravel(U), np.ravel(X), np.ravel(y_a)]
         if not self.closed_form:
             parts.append(np.ravel(rest))
@@ -74,7 +75,161 @@ class NlpLayout:
         return np.concatenate(parts)
 
 
-class TrackingNlp:
+@dataclass
+class ProblemParts:
+    """Symbols and functions shared by every formulation of one settings structure.
+
+    Attributes:
+        par: the parameter vector (see `parameters` for its order), and its pieces x0, y_t,
+            kappa, mu, q, r, keep_active, slot_par.
+        avoidance: (x [n], u [m]) -> active * g of every keep-in expression and obstacle slot
+            [n_depth] (> 0 inside a region to avoid).
+        hard_g: Function (x, u) -> hard inequalities g <= 0 [n_hard]; hard_uses_u per row.
+        slot_layout, output_frame_available, closed_form, n_keep_in.
+    """
+
+    par: ca.SX
+    x0: ca.SX
+    y_t: ca.SX
+    kappa: ca.SX
+    mu: ca.SX
+    q: ca.SX
+    r: ca.SX
+    keep_active: ca.SX
+    slot_par: ca.SX
+    avoidance: object
+    hard_g: ca.Function
+    hard_uses_u: list[bool]
+    n_hard: int
+    n_keep_in: int
+    n_depth: int
+    slot_layout: SlotLayout
+    output_frame_available: bool
+    closed_form: bool
+
+
+def check_sizes(settings: ControllerSettings, model: Model) -> None:
+    """ConfigError when bounds, weights or planes do not fit the model's dimensions."""
+    for name, size in (("state_min", model.n), ("state_max", model.n), ("input_min", model.m),
+                       ("input_max", model.m), ("state_weights", model.n), ("input_weights", model.m)):
+        if len(getattr(settings, name)) != size:
+            raise ConfigError(f"{name} needs {size} values for model {model.name}, got {len(getattr(settings, name))}")
+    if max(settings.plane) >= model.n:
+        raise ConfigError(f"plane {settings.plane} indexes beyond the {model.n} states of {model.name}")
+
+
+def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
+    """Parse the regions and make the parameter symbols of one settings structure."""
+    s, mdl = settings, model
+    n, m, p = mdl.n, mdl.m, mdl.p
+    slots = SlotLayout(s.max_ellipses, s.max_polygons, s.max_polygon_vertices)
+    output_frame_available = p >= 2 and max(s.output_plane) < p
+    # keep-in expressions over the model's names, as one Function g(x, u) -> [n_keep]
+    xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
+    symbols = mdl.symbol_table(xs, us)
+    keep_in = [parse_keep_in(text, symbols) for text in s.keep_in]
+    hard = [parse_keep_in(text, symbols) for text in s.constraints]
+    keep_g = ca.Function("keep_in_g", [xs, us], [ca.vertcat(*[k.g for k in keep_in]) if keep_in else ca.SX(0, 1)])
+    hard_g = ca.Function("hard_g", [xs, us], [ca.vertcat(*[k.g for k in hard]) if hard else ca.SX(0, 1)])
+    hard_uses_u = [bool(ca.depends_on(k.g, us)) for k in hard]
+    x0 = ca.SX.sym("x0", n)
+    y_t = ca.SX.sym("y_t", p)
+    kappa = ca.SX.sym("kappa")
+    mu = ca.SX.sym("mu")
+    q = ca.SX.sym("q", n)
+    r = ca.SX.sym("r", m)
+    keep_active = ca.SX.sym("keep_active", len(keep_in))
+    slot_par = ca.SX.sym("slots", slots.size)
+    par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, slot_par)
+
+    def avoidance(x, u):
+        """The region functions g at one point (keep-in expressions, then obstacle slots)."""
+        state_point = x[list(s.plane)]
+        output_point = mdl.output(x, u)[list(s.output_plane)] if output_frame_available else None
+        return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, state_point, output_point))
+
+    return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, hard_g, hard_uses_u,
+                        len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
+                        output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None)
+
+
+class NlpBase:
+    """What the controller needs from any formulation (multiple shooting or stage-wise).
+
+    Subclasses set: layout (split_w/join_w, horizon, n_keep_in, n_w), solver, lbx, ubx, lbg,
+    ubg, terms (w, p) -> (V_o, V_a, tracking), steady (w) -> (x_a, u_a), constraint_values
+    (w, p) -> g, slot_layout, output_frame_available, and `_slack_index` with `_slack_value`
+    (w, p) -> max(0, depth) in the order of the slack variables.
+    """
+
+    settings: ControllerSettings
+    solver: ca.Function
+    lbx: np.ndarray
+    ubx: np.ndarray
+    lbg: np.ndarray
+    ubg: np.ndarray
+    _slack_index: np.ndarray
+
+    def parameters(self, x0: np.ndarray, y_t: np.ndarray, slots: np.ndarray, *, kappa: float, mu: float,
+                   state_weights: np.ndarray, input_weights: np.ndarray, keep_in_active: np.ndarray) -> np.ndarray:
+        """Pack the parameter vector: x0 [n], y_t [p], kappa, mu, diag Q [n], diag R [m], keep-in flags, slots."""
+        return np.concatenate([x0, y_t, [kappa, mu], state_weights, input_weights, keep_in_active, slots])
+
+    def violation(self, w: np.ndarray, par: np.ndarray) -> float:
+        """Largest violation of the constraints and bounds at w (0 if feasible)."""
+        g = np.asarray(self.constraint_values(w, par)).ravel()
+        viol = np.concatenate([self.lbg - g, g - self.ubg, self.lbx - w, w - self.ubx, [0.0]])
+        return float(np.max(viol[np.isfinite(viol)]))
+
+    def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+        """One solver call from the guess; returns copies of w [n_w], lam_x [n_w], lam_g [n_g] and the stats.
+
+        The call goes through `Function.buffer()` with arrays bound once, so no argument is
+        converted or allocated per call (a dict call costs ~0.15 ms more, measured).
+        """
+        if getattr(self, "_buffer", None) is None:
+            self._bind_buffer()
+        args = self._args
+        np.copyto(args[0], w0)
+        np.copyto(args[1], par)
+        np.copyto(args[6], lam_x0)
+        np.copyto(args[7], lam_g0)
+        self._trigger()
+        res = self._results
+        return res[0].copy(), res[3].copy(), res[4].copy(), self._buffer.stats()
+
+    def _bind_buffer(self) -> None:
+        solver = self.solver
+        if list(solver.name_in()) != ["x0", "p", "lbx", "ubx", "lbg", "ubg", "lam_x0", "lam_g0"] or \
+                list(solver.name_out()[:6]) != ["x", "f", "g", "lam_x", "lam_g", "lam_p"]:
+            raise ConfigError(f"unexpected solver signature {solver.name_in()} -> {solver.name_out()}")
+        sizes = [solver.nnz_in(i) for i in range(solver.n_in())]
+        self._args = [np.zeros(size) for size in sizes]
+        np.copyto(self._args[2], self.lbx)
+        np.copyto(self._args[3], self.ubx)
+        np.copyto(self._args[4], self.lbg)
+        np.copyto(self._args[5], self.ubg)
+        self._results = [np.zeros(solver.nnz_out(i)) for i in range(solver.n_out())]
+        buffer, self._trigger = solver.buffer()
+        for i, arr in enumerate(self._args):
+            buffer.set_arg(i, memoryview(arr))
+        for i, arr in enumerate(self._results):
+            buffer.set_res(i, memoryview(arr))
+        self._buffer = buffer
+
+    def fill_slacks(self, w: np.ndarray, par: np.ndarray) -> np.ndarray:
+        """w with its slacks set to max(0, depth) of its own states (the tightest feasible slacks)."""
+        if self._slack_index.size:
+            w[self._slack_index] = np.asarray(self._slack_value(w, par)).ravel()
+        return w
+
+    def shift_duals(self, lam_x: np.ndarray, lam_g: np.ndarray, shift: int) -> tuple[np.ndarray, np.ndarray]:
+        """Multipliers for a primal guess shifted by `shift` samples (unchanged by default)."""
+        return lam_x, lam_g
+
+
+class TrackingNlp(NlpBase):
     """The NLP and its solver for one settings structure. Building is the expensive part.
 
     Attributes:
@@ -92,44 +247,21 @@ class TrackingNlp:
         self._build()
 
     def _check_sizes(self) -> None:
-        s, mdl = self.settings, self.model
-        for name, size in (("state_min", mdl.n), ("state_max", mdl.n), ("input_min", mdl.m),
-                           ("input_max", mdl.m), ("state_weights", mdl.n), ("input_weights", mdl.m)):
-            if len(getattr(s, name)) != size:
-                raise ConfigError(f"{name} needs {size} values for model {mdl.name}, got {len(getattr(s, name))}")
-        if max(s.plane) >= mdl.n:
-            raise ConfigError(f"plane {s.plane} indexes beyond the {mdl.n} states of {mdl.name}")
+        check_sizes(self.settings, self.model)
 
     def _build(self) -> None:
         s, mdl = self.settings, self.model
         n, m, p, N = mdl.n, mdl.m, mdl.p, s.horizon
-        closed_form = s.use_closed_form_steady_state and mdl.steady_state is not None
-        slots = SlotLayout(s.max_ellipses, s.max_polygons, s.max_polygon_vertices)
-        self.slot_layout = slots
-        self.output_frame_available = p >= 2 and max(s.output_plane) < p
-
-        # keep-in expressions over the model's names, as one Function g(x, u) -> [n_keep]
-        xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
-        symbols = mdl.symbol_table(xs, us)
-        keep_in = [parse_keep_in(text, symbols) for text in s.keep_in]
-        hard = [parse_keep_in(text, symbols) for text in s.constraints]
-        keep_g = ca.Function("keep_in_g", [xs, us], [ca.vertcat(*[k.g for k in keep_in]) if keep_in else ca.SX(0, 1)])
-        hard_g = ca.Function("hard_g", [xs, us], [ca.vertcat(*[k.g for k in hard]) if hard else ca.SX(0, 1)])
-        hard_uses_u = [bool(ca.depends_on(k.g, us)) for k in hard]
-        n_depth = len(keep_in) + slots.max_ellipses + slots.max_polygons
-        layout = NlpLayout(n, m, p, N, len(keep_in), slots.size, closed_form, (N + 2) * n_depth)
+        parts = problem_parts(s, mdl)
+        closed_form = parts.closed_form
+        self.slot_layout = parts.slot_layout
+        self.output_frame_available = parts.output_frame_available
+        hard = range(parts.n_hard)
+        hard_g, hard_uses_u = parts.hard_g, parts.hard_uses_u
+        layout = NlpLayout(n, m, p, N, parts.n_keep_in, parts.slot_layout.size, closed_form, (N + 2) * parts.n_depth)
         self.layout = layout
-
-        # parameters
-        x0 = ca.SX.sym("x0", n)
-        y_t = ca.SX.sym("y_t", p)
-        kappa = ca.SX.sym("kappa")
-        mu = ca.SX.sym("mu")
-        q = ca.SX.sym("q", n)
-        r = ca.SX.sym("r", m)
-        keep_active = ca.SX.sym("keep_active", len(keep_in))
-        slot_par = ca.SX.sym("slots", slots.size)
-        par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, slot_par)
+        x0, y_t, kappa, mu, q, r, par = parts.x0, parts.y_t, parts.kappa, parts.mu, parts.q, parts.r, parts.par
+        avoidance = parts.avoidance
 
         # decision variables
         U = ca.SX.sym("U", m, N)
@@ -145,12 +277,6 @@ class TrackingNlp:
 
         f = mdl.discrete(s.sample_time, s.discretization)
 
-        def avoidance(x, u):
-            """The region functions g at one point (keep-in expressions, then obstacle slots)."""
-            state_point = x[list(s.plane)]
-            output_point = mdl.output(x, u)[list(s.output_plane)] if self.output_frame_available else None
-            return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, state_point, output_point))
-
         states = [x0] + [X[:, j] for j in range(N)]
         g, lbg, ubg = [], [], []
         tracking = 0
@@ -164,7 +290,7 @@ class TrackingNlp:
             tracking += ca.dot(q * dx, dx) + ca.dot(r * du, du)
             depth.append(avoidance(states[j], U[:, j]))
             if hard:
-                rows = [i for i in range(len(hard)) if j > 0 or hard_uses_u[i]]
+                rows = [i for i in hard if j > 0 or hard_uses_u[i]]
                 if rows:
                     g.append(hard_g(states[j], U[:, j])[rows])
                     lbg += [-np.inf] * len(rows)
@@ -189,8 +315,8 @@ class TrackingNlp:
         ubg += [lam * v for v in (*s.state_max, *s.input_max)]
         if hard:
             g.append(hard_g(x_a / lam, u_a / lam))
-            lbg += [-np.inf] * len(hard)
-            ubg += [0.0] * len(hard)
+            lbg += [-np.inf] * parts.n_hard
+            ubg += [0.0] * parts.n_hard
         if not closed_form:
             g.append(mdl.dynamics(x_a, u_a))
             g.append(y_a - mdl.output(x_a, u_a))
@@ -218,37 +344,71 @@ class TrackingNlp:
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
 
         nlp = {"x": w, "p": par, "f": cost, "g": ca.vertcat(*g)}
-        self.solver = make_solver(nlp, s)
+        self.solver = make_solver(nlp, s, self.lbg == self.ubg)
         self.terms = ca.Function("terms", [w, par], [v_offset, v_avoid, tracking])
         self.steady = ca.Function("steady", [w], [x_a, u_a])
         self.constraint_values = ca.Function("constraints", [w, par], [ca.vertcat(*g)])
-        self.slack_of = ca.Function("slack_of", [w, par], [ca.fmax(0, depth)])
-
-    def parameters(self, x0: np.ndarray, y_t: np.ndarray, slots: np.ndarray, *, kappa: float, mu: float,
-                   state_weights: np.ndarray, input_weights: np.ndarray, keep_in_active: np.ndarray) -> np.ndarray:
-        """Pack the parameter vector (see the module docstring for the order)."""
-        return np.concatenate([x0, y_t, [kappa, mu], state_weights, input_weights, keep_in_active, slots])
-
-    def violation(self, w: np.ndarray, par: np.ndarray) -> float:
-        """Largest violation of the constraints and bounds at w (0 if feasible)."""
-        g = np.asarray(self.constraint_values(w, par)).ravel()
-        viol = np.concatenate([self.lbg - g, g - self.ubg, self.lbx - w, w - self.ubx, [0.0]])
-        return float(np.max(viol[np.isfinite(viol)]))
+        self._slack_value = ca.Function("slack_of", [w, par], [ca.fmax(0, depth)])
+        self._slack_index = np.arange(layout.n_w - layout.n_slack, layout.n_w)
 
 
-def make_solver(nlp: dict, settings: ControllerSettings) -> ca.Function:
-    """nlpsol for the chosen solver path with its budget (iterations, wall time)."""
-    if settings.solver == "ipopt":
-        opts = {
-            "print_time": False,
-            "error_on_fail": False,
-            "ipopt": {
-                "print_level": 0,
-                "sb": "yes",
-                "max_iter": settings.max_iterations,
-                "max_wall_time": settings.max_solve_time,
-                "tol": settings.tolerance,
-            },
-        }
-        return ca.nlpsol("nmpc", "ipopt", nlp, opts)
-    raise ConfigError(f"unknown solver {settings.solver!r}")
+#: weight of the slacks' own regularisation in the stage-wise paths (mu = 0 leaves them free
+#: otherwise, a flat direction); it only pins s = max(0, g)
+SLACK_REGULARISATION = 1e-6
+
+#: iteration cap of the QP solver inside each SQP iteration
+QP_ITERATION_CAP = 100
+
+#: the CasADi plugin of each solver path
+_PLUGINS = {"ipopt": "ipopt", "fatrop": "fatrop", "sqp": "sqpmethod", "sqp_hpipm": "sqpmethod"}
+
+
+def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
+                stages: dict[str, list[int]] | None = None) -> ca.Function:
+    """nlpsol for the chosen solver path with its budget (iterations; wall time where supported).
+
+    `equality` flags the constraints with lbg == ubg (FATROP needs to know them); `stages` gives
+    the stage dimensions nx, nu, ng [N + 1] of a stage-wise problem (HPIPM needs them). With
+    settings.codegen the oracles are generated, compiled and cached (see core/codegen.py).
+    """
+    path = settings.solver
+    if path not in _PLUGINS:
+        raise ConfigError(f"unknown solver {path!r}; known: {', '.join(SOLVERS)}")
+    plugin = _PLUGINS[path]
+    opts: dict = {"print_time": False, "error_on_fail": False}
+    if path == "ipopt":
+        opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": settings.max_iterations,
+                         "max_wall_time": settings.max_solve_time, "tol": settings.tolerance}
+    elif path == "fatrop":
+        opts.update({"structure_detection": "auto", "equality": [bool(e) for e in equality],
+                     "fatrop": {"print_level": 0, "max_iter": settings.max_iterations, "tol": settings.tolerance}})
+    else:
+        qpsol = "qrqp" if path == "sqp" else "hpipm"
+        qp_opts: dict = {"error_on_fail": False}
+        if qpsol == "hpipm":
+            if stages is None:
+                raise ConfigError("solver sqp_hpipm needs the stage-wise formulation")
+            qp_opts.update({"N": len(stages["nx"]) - 1, **stages, "hpipm": {"iter_max": 50, "warm_start": 1}})
+        if qpsol == "qrqp":
+            # the active-set QP can cycle on degenerate samples; a cap bounds its worst case and
+            # the SQP goes on from the partial step (measured: one sample took 2 s uncapped)
+            qp_opts.update({"print_iter": False, "print_header": False, "print_info": False,
+                            "max_iter": QP_ITERATION_CAP})
+        # the cost is a sum of squares and the constraints carry the curvature we drop: the
+        # Gauss-Newton Hessian is the cost's own (constant) Hessian, always positive semi-definite
+        lam_f = ca.SX.sym("lam_f")
+        lam_g = ca.SX.sym("lam_g", nlp["g"].numel())
+        hessian = ca.Function("nlp_hess_l", [nlp["x"], nlp["p"], lam_f, lam_g],
+                              [lam_f * ca.hessian(nlp["f"], nlp["x"])[0]],
+                              ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        opts.update({"qpsol": qpsol, "qpsol_options": qp_opts, "hess_lag": hessian, "max_iter": settings.max_iterations,
+                     "print_header": False, "print_iteration": False, "print_status": False,
+                     "tol_pr": settings.tolerance, "tol_du": max(settings.tolerance, 1e-6)})
+    if not settings.codegen:
+        return ca.nlpsol("nmpc", plugin, nlp, opts)
+    from .codegen import cache_dir, compiled_library, structure_hash
+
+    key = structure_hash(plugin, nlp)
+    library, _ = compiled_library(key, cache_dir(settings.cache_dir),
+                                  lambda: ca.nlpsol("nmpc", plugin, nlp, opts))
+    return ca.nlpsol("nmpc", plugin, str(library), opts)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -27,7 +28,14 @@ import yaml
 from .errors import ConfigError
 from .models import DISCRETISATIONS, MODELS
 
-SOLVERS = ("ipopt",)
+#: solver paths: name -> one-line description (core/nlp.py builds them)
+SOLVER_PATHS: dict[str, str] = {
+    "ipopt": "multiple shooting, IPOPT interior point (the reference)",
+    "fatrop": "stage-wise formulation, FATROP structure-exploiting interior point",
+    "sqp": "stage-wise formulation, SQP with a Gauss-Newton Hessian and the qrqp active-set QP solver",
+    "sqp_hpipm": "stage-wise formulation, SQP with a Gauss-Newton Hessian and the HPIPM QP solver",
+}
+SOLVERS = tuple(SOLVER_PATHS)
 
 
 @dataclass(frozen=True)
@@ -56,7 +64,9 @@ class ControllerSettings:
     max_ellipses: int = 8  # structural
     max_polygons: int = 4  # structural
     max_polygon_vertices: int = 8  # structural
-    solver: str = "ipopt"  # structural
+    solver: str = "ipopt"  # structural: one of SOLVERS
+    codegen: bool = False  # structural: generate, compile and cache the solver's functions as C
+    cache_dir: str = ""  # where compiled solvers are cached ("" -> $NMPC_AVOID_ROS_CACHE or ~/.cache)
     state_weights: tuple[float, ...] = (1.0, 1.0)  # parameter: diag Q of l
     input_weights: tuple[float, ...] = (1.0,)  # parameter: diag R of l
     kappa: float = 1.0e4  # parameter: V_o = kappa |y_a - y_t|^2
@@ -77,10 +87,17 @@ class ControllerSettings:
 
     def validate(self) -> None:
         """Raise ConfigError naming the first invalid setting."""
+        for name in ("model", "discretization", "solver"):
+            if not isinstance(getattr(self, name), str):
+                raise ConfigError(f"{name} must be a string, got {getattr(self, name)!r}")
         if self.model not in MODELS:
             raise ConfigError(f"model: unknown {self.model!r}; known: {', '.join(sorted(MODELS))}")
         if self.discretization not in DISCRETISATIONS:
             raise ConfigError(f"discretization must be one of {DISCRETISATIONS}, got {self.discretization!r}")
+        if not isinstance(self.codegen, bool):
+            raise ConfigError(f"codegen must be true or false, got {self.codegen!r}")
+        if not isinstance(self.cache_dir, str):
+            raise ConfigError(f"cache_dir must be a path string, got {self.cache_dir!r}")
         if self.solver not in SOLVERS:
             raise ConfigError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         _positive("sample_time", self.sample_time)
@@ -93,6 +110,10 @@ class ControllerSettings:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < least:
                 raise ConfigError(f"{name} must be an integer >= {least}, got {value!r}")
+        if not isinstance(self.use_closed_form_steady_state, bool):
+            raise ConfigError(f"use_closed_form_steady_state must be true or false, got "
+                              f"{self.use_closed_form_steady_state!r}")
+        _positive("steady_state_scale", self.steady_state_scale)
         if not 0 < self.steady_state_scale <= 1:
             raise ConfigError(f"steady_state_scale (lambda) must be in (0, 1], got {self.steady_state_scale}")
         _nonnegative("kappa", self.kappa)
@@ -105,13 +126,20 @@ class ControllerSettings:
             if len(lo) != len(hi):
                 raise ConfigError(f"{lo_name} and {hi_name} must have the same length")
             for a, b in zip(lo, hi):
+                if not all(_is_real(v) for v in (a, b)):
+                    raise ConfigError(f"{lo_name}/{hi_name} must be numbers, got {a!r}, {b!r}")
                 if math.isnan(a) or math.isnan(b) or not a <= 0 <= b or a == b:
                     # lambda * Z needs Z to contain the origin (paper section II)
                     raise ConfigError(f"{lo_name}/{hi_name}: need min <= 0 <= max and min < max, got {a}, {b}")
         for name in ("plane", "output_plane"):
             plane = getattr(self, name)
-            if len(plane) != 2 or plane[0] == plane[1] or min(plane) < 0:
+            if (len(plane) != 2 or not all(isinstance(i, numbers.Integral) and not isinstance(i, bool) for i in plane)
+                    or plane[0] == plane[1] or min(plane) < 0):
                 raise ConfigError(f"{name} must be two different non-negative indices, got {plane}")
+        for name in ("constraints", "keep_in"):
+            for text in getattr(self, name):
+                if not isinstance(text, str):
+                    raise ConfigError(f"{name} must be a list of expression strings, got {text!r}")
 
     def replace(self, **changes: Any) -> ControllerSettings:
         """A copy with some fields changed (validated)."""
@@ -120,8 +148,10 @@ class ControllerSettings:
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> ControllerSettings:
         """Settings from the `ros__parameters` mapping of the controller (unknown keys refused)."""
+        if not isinstance(params, Mapping):
+            raise ConfigError(f"controller parameters must be a mapping, got {type(params).__name__}")
         known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(params) - known - NODE_ONLY_PARAMETERS)
+        unknown = sorted(map(str, set(params) - known - NODE_ONLY_PARAMETERS))
         if unknown:
             raise ConfigError(f"unknown controller parameter(s): {', '.join(unknown)}")
         values = {k: v for k, v in params.items() if k in known}
@@ -149,17 +179,28 @@ def _as_float(name: str, value: Any) -> float:
         raise ConfigError(f"{name} must be a number, got {value!r}")
     try:
         return float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
         raise ConfigError(f"{name} must be a number, got {value!r}") from None
 
 
+def _is_real(value: Any) -> bool:
+    """A real number (not a bool) that converts to a float (possibly +-inf, not an overflowing int)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return False
+    try:
+        float(value)
+    except OverflowError:
+        return False
+    return True
+
+
 def _positive(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+    if not (_is_real(value) and math.isfinite(value) and value > 0):
         raise ConfigError(f"{name} must be a positive finite number, got {value!r}")
 
 
 def _nonnegative(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+    if not (_is_real(value) and math.isfinite(value) and value >= 0):
         raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
 
 
@@ -182,10 +223,16 @@ def load_params_file(path: str | Path) -> ParamsFile:
         text = p.read_text()
     except OSError as exc:
         raise ConfigError(f"cannot read params file {p}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"params file {p} is not UTF-8 text (byte {exc.start})") from None
+    except ValueError as exc:  # e.g. a NUL byte in the path
+        raise ConfigError(f"cannot read params file {p!r}: {exc}") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"params file {p} is not valid YAML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"params file {p} is nested too deeply to be a params file") from None
     if not isinstance(data, dict):
         raise ConfigError(f"params file {p}: expected node names as top-level keys")
     nodes: dict[str, dict[str, Any]] = {}
@@ -227,7 +274,9 @@ SETTING_DOCS: dict[str, str] = {
     "max_ellipses": "capacity of ellipse obstacle slots (CYLINDER/SPHERE markers)",
     "max_polygons": "capacity of polygon obstacle slots (CUBE/LINE_STRIP markers)",
     "max_polygon_vertices": "largest number of vertices of a polygon obstacle",
-    "solver": "NLP solver path (ipopt)",
+    "solver": "NLP solver path: " + ", ".join(SOLVERS) + " (simulate --solver list describes them)",
+    "codegen": "generate the solver's functions as C, compile them (cc) and cache the library by problem hash",
+    "cache_dir": "folder of compiled solvers; empty: $NMPC_AVOID_ROS_CACHE, else ~/.cache/nmpc_avoid_ros",
     "state_weights": "diagonal of Q in the stage cost |x - x_a|_Q^2 (n values >= 0)",
     "input_weights": "diagonal of R in the stage cost |u - u_a|_R^2 (m values >= 0)",
     "kappa": "offset cost weight: V_o = kappa |y_a - y_t|^2",

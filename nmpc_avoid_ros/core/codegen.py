@@ -1,0 +1,81 @@
+"""Generated and compiled NLP oracles, cached on disk by a hash of the problem structure.
+
+CasADi writes the functions a solver evaluates (cost, constraints and their derivatives) as C
+(`generate_dependencies`); compiled into a shared library they run several times faster than
+CasADi's virtual machine, and `nlpsol(name, plugin, "lib.so", opts)` loads them without any
+symbolic work. The cache key is a SHA-256 of the CasADi version, the solver plugin and the
+serialised symbolic problem, so any change of structure (horizon, model, region capacity, ...)
+gets its own library, and run-time parameters (target, weights, obstacles) never do.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import casadi as ca
+
+from .errors import ConfigError
+
+#: environment variable that overrides the default cache folder
+CACHE_ENV = "NMPC_AVOID_ROS_CACHE"
+
+
+def cache_dir(setting: str = "") -> Path:
+    """The cache folder: the setting, else $NMPC_AVOID_ROS_CACHE, else $XDG_CACHE_HOME/nmpc_avoid_ros."""
+    if setting:
+        return Path(setting).expanduser()
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "nmpc_avoid_ros"
+
+
+def structure_hash(plugin: str, nlp: dict) -> str:
+    """SHA-256 (hex, 16 chars) of the CasADi version, the plugin and the symbolic problem."""
+    problem = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
+    digest = hashlib.sha256()
+    for part in (ca.__version__, plugin, problem.serialize()):
+        digest.update(part.encode())
+    return digest.hexdigest()[:16]
+
+
+def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Function]) -> tuple[Path, bool]:
+    """Path of the compiled oracle library for `key` and whether it came from the cache.
+
+    On a miss, `make_solver()` builds the symbolic solver whose oracles are generated and compiled
+    with $CC (default cc) at -O2; the library is moved into place atomically, so concurrent
+    processes never load a half-written file.
+    """
+    library = folder / f"nmpc_{key}.so"
+    if library.exists():
+        return library, True
+    compiler = os.environ.get("CC", "cc")
+    if shutil.which(compiler) is None:
+        raise ConfigError(f"codegen needs a C compiler ({compiler!r} not found): install gcc, set CC, "
+                          "or set codegen: false")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the solver cache folder {folder}: {exc.strerror or exc}") from None
+    solver = make_solver()
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        source = f"nmpc_{key}.c"
+        cwd = os.getcwd()
+        os.chdir(tmp)  # generate_dependencies writes into the working directory
+        try:
+            solver.generate_dependencies(source)
+        finally:
+            os.chdir(cwd)
+        built = Path(tmp) / f"nmpc_{key}.so"
+        result = subprocess.run([compiler, "-O2", "-fPIC", "-shared", str(Path(tmp) / source), "-o", str(built)],
+                                capture_output=True, text=True)
+        if result.returncode != 0:
+            raise ConfigError(f"compiling the generated solver failed: {result.stderr.strip()[:500]}")
+        os.replace(built, library)
+    return library, False

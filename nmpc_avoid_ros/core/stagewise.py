@@ -1,0 +1,217 @@
+"""The same NLP as core/nlp.py, written stage by stage for structure-exploiting solvers.
+
+FATROP and the SQP/HPIPM paths solve optimal-control problems whose variables and constraints
+come in stages, each coupled only to the next by the dynamics. The tracking problem has one
+global variable, the artificial output y_a; it becomes a constant state (y(k+1) = y(k)), and
+everything that depends on it is written per stage with that stage's copy. Per stage k:
+
+    states   x(k) [n], y(k) [p]
+    controls u(k) [m], s(k) [n_depth]   (+ s_a [n_depth] at k = 0)     for k < N
+    gap      x(k+1) - f(x(k), u(k)) = 0, y(k+1) - y(k) = 0              for k < N
+    path     k = 0: x(0) = measured x0; s_a >= depth(x_a, u_a); (x_a, u_a) in lambda Z; hard(x_a/lambda)
+             s(k) >= depth(x(k), u(k)); hard(x(k), u(k)) for k >= 1 (and rows that use u at k = 0)
+             k = N: x(N) = x_a(y(N))                                     (terminal equality)
+    cost     k = 0: kappa |y(0) - y_t|^2 + 2 mu |s_a|^2   (x(N) = x_a, so F(x(N)) = F(x_a))
+             |x(k) - x_a(y(k))|_Q^2 + |u(k) - u_a(y(k))|_R^2 + mu |s(k)|^2
+
+with x_a, u_a = g_x(y), g_u(y) (the closed-form steady state, which this formulation needs).
+The optimum equals the multiple-shooting NLP's: x(0) is fixed by an equality instead of being a
+parameter, and V_a's terms at x(N) and x_a are merged. The slacks have no bound s >= 0 (min s^2
+subject to s >= g already gives max(0, g)), and SLACK_REGULARISATION |s|^2 keeps them pinned
+when mu = 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .errors import ConfigError
+from .models import Model, make_model
+from .nlp import SLACK_REGULARISATION, NlpBase, check_sizes, make_solver, problem_parts
+from .settings import ControllerSettings
+
+
+@dataclass
+class StagewiseLayout:
+    """Index bookkeeping of the stage-wise w: stage k starts at `stage_start[k]`."""
+
+    n: int
+    m: int
+    p: int
+    horizon: int
+    n_keep_in: int
+    n_depth: int
+    n_w: int
+    stage_start: np.ndarray  # [N + 1]
+    closed_form: bool = True
+
+    def split_w(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, None]:
+        """w -> U [N, m], X [N, n] (x(1..N)), y_a [p], None."""
+        w = np.asarray(w, float).ravel()
+        n, m, p, N = self.n, self.m, self.p, self.horizon
+        starts = self.stage_start
+        U = np.stack([w[starts[k] + n + p: starts[k] + n + p + m] for k in range(N)])
+        X = np.stack([w[starts[k]: starts[k] + n] for k in range(1, N + 1)])
+        return U, X, w[n:n + p].copy(), None
+
+    def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: None = None,
+               x0: np.ndarray | None = None) -> np.ndarray:
+        """Inverse of split_w with x(0) = x0 (zeros if None); slacks zero (see NlpBase.fill_slacks)."""
+        n, m, p, N = self.n, self.m, self.p, self.horizon
+        w = np.zeros(self.n_w)
+        starts = self.stage_start
+        states = [np.zeros(n) if x0 is None else np.ravel(x0)] + list(np.reshape(X, (N, n)))
+        U = np.reshape(U, (N, m))
+        for k in range(N + 1):
+            w[starts[k]: starts[k] + n] = states[k]
+            w[starts[k] + n: starts[k] + n + p] = y_a
+            if k < N:
+                w[starts[k] + n + p: starts[k] + n + p + m] = U[k]
+        return w
+
+
+class StagewiseNlp(NlpBase):
+    """Stage-wise NLP and its solver (FATROP or SQP); the controller uses it like TrackingNlp."""
+
+    def __init__(self, settings: ControllerSettings, model: Model | None = None) -> None:
+        self.settings = settings
+        self.model = model or make_model(settings.model)
+        check_sizes(settings, self.model)
+        if not (settings.use_closed_form_steady_state and self.model.steady_state is not None):
+            raise ConfigError(f"solver {settings.solver!r} needs the closed-form steady state of the model "
+                              "(use_closed_form_steady_state: true); use solver ipopt otherwise")
+        self._build()
+
+    def _build(self) -> None:
+        s, mdl = self.settings, self.model
+        n, m, p, N = mdl.n, mdl.m, mdl.p, s.horizon
+        parts = problem_parts(s, mdl)
+        self.slot_layout = parts.slot_layout
+        self.output_frame_available = parts.output_frame_available
+        nd, lam = parts.n_depth, s.steady_state_scale
+        f = mdl.discrete(s.sample_time, s.discretization)
+        regularise = SLACK_REGULARISATION
+
+        def steady(y):
+            x_a, u_a = mdl.steady_state(y)
+            return ca.vertcat(x_a), ca.vertcat(u_a)
+
+        X = [ca.SX.sym(f"x{k}", n) for k in range(N + 1)]
+        Y = [ca.SX.sym(f"y{k}", p) for k in range(N + 1)]
+        U = [ca.SX.sym(f"u{k}", m) for k in range(N)]
+        S = [ca.SX.sym(f"s{k}", nd) for k in range(N)]
+        s_a = ca.SX.sym("s_a", nd)
+        inf = np.inf
+        w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
+        slack_vars, slack_depths, stage_start, g_start = [], [], [], []
+        cost = v_offset = tracking = 0
+        offset = 0
+        for k in range(N + 1):
+            stage_start.append(offset)
+            g_start.append(len(lbg))
+            x_a, u_a = steady(Y[k])
+            inside = 0 < k < N  # x(0) is measured, x(N) is tied to x_a
+            w += [X[k], Y[k]]
+            lbw += list(s.state_min) if inside else [-inf] * n
+            ubw += list(s.state_max) if inside else [inf] * n
+            lbw += [-inf] * p
+            ubw += [inf] * p
+            if k == N:
+                g.append(X[N] - x_a)  # terminal equality (eq. 20h)
+                lbg += [0.0] * n
+                ubg += [0.0] * n
+                offset += n + p
+                break
+            controls = [U[k], S[k]] + ([s_a] if k == 0 else [])
+            w += controls
+            # no s >= 0 bound: min mu s^2 s.t. s >= g already gives s = max(0, g), and the bound
+            # made the QPs degenerate (s >= 0 and s >= g both active on a region's boundary)
+            lbw += list(s.input_min) + [-inf] * nd * (2 if k == 0 else 1)
+            ubw += list(s.input_max) + [inf] * nd * (2 if k == 0 else 1)
+            offset += n + p + m + nd * (2 if k == 0 else 1)
+            # gap-closing constraints first: FATROP's structure detection expects them so
+            g.append(ca.vertcat(X[k + 1] - f(X[k], U[k]), Y[k + 1] - Y[k]))
+            lbg += [0.0] * (n + p)
+            ubg += [0.0] * (n + p)
+            if k == 0:
+                g.append(X[0] - parts.x0)
+                lbg += [0.0] * n
+                ubg += [0.0] * n
+                depth_a = parts.avoidance(x_a, u_a)
+                g.append(s_a - depth_a)
+                lbg += [0.0] * nd
+                ubg += [inf] * nd
+                g.append(ca.vertcat(x_a, u_a))  # (x_a, u_a) in lambda Z
+                lbg += [lam * v for v in (*s.state_min, *s.input_min)]
+                ubg += [lam * v for v in (*s.state_max, *s.input_max)]
+                if parts.n_hard:
+                    g.append(parts.hard_g(x_a / lam, u_a / lam))
+                    lbg += [-inf] * parts.n_hard
+                    ubg += [0.0] * parts.n_hard
+                dy = Y[0] - parts.y_t
+                v_offset = parts.kappa * ca.dot(dy, dy)
+                cost += v_offset + 2 * parts.mu * ca.dot(s_a, s_a) + regularise * ca.dot(s_a, s_a)
+                slack_vars.append(s_a)
+                slack_depths.append(depth_a)
+            depth = parts.avoidance(X[k], U[k])
+            g.append(S[k] - depth)
+            lbg += [0.0] * nd
+            ubg += [inf] * nd
+            rows = [i for i in range(parts.n_hard) if k > 0 or parts.hard_uses_u[i]]
+            if rows:
+                g.append(parts.hard_g(X[k], U[k])[rows])
+                lbg += [-inf] * len(rows)
+                ubg += [0.0] * len(rows)
+            dx, du = X[k] - x_a, U[k] - u_a
+            stage = ca.dot(parts.q * dx, dx) + ca.dot(parts.r * du, du)
+            tracking += stage
+            cost += stage + (parts.mu + regularise) * ca.dot(S[k], S[k])
+            slack_vars.append(S[k])
+            slack_depths.append(depth)
+        w = ca.vertcat(*w)
+        g = ca.vertcat(*g)
+        all_depths = ca.vertcat(*slack_depths)
+        # the reported V_a is the paper's, with x(N) = x_a counted twice as in the cost
+        v_avoid = parts.mu * (ca.sumsqr(ca.fmax(0, ca.vertcat(*slack_depths[1:]))) + 2 * ca.sumsqr(ca.fmax(0, depth_a)))
+        self.lbx, self.ubx = np.array(lbw, float), np.array(ubw, float)
+        self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
+        self.layout = StagewiseLayout(n, m, p, N, parts.n_keep_in, nd, w.numel(), np.array(stage_start))
+        par = parts.par
+        g_start.append(len(lbg))
+        stages = {"nx": [n + p] * (N + 1),
+                  "nu": [int(stage_start[k + 1] - stage_start[k] - n - p) for k in range(N)] + [0],
+                  "ng": [int(g_start[k + 1] - g_start[k]) - (n + p if k < N else 0) for k in range(N + 1)]}
+        self.solver = make_solver({"x": w, "p": par, "f": cost, "g": g}, s, self.lbg == self.ubg, stages)
+        x_a0, u_a0 = steady(Y[0])
+        self.terms = ca.Function("terms", [w, par], [v_offset, v_avoid, tracking])
+        self.steady = ca.Function("steady", [w], [x_a0, u_a0])
+        self.constraint_values = ca.Function("constraints", [w, par], [g])
+        self._slack_value = ca.Function("slack_of", [w, par], [ca.fmax(0, all_depths)])
+        # where the slack variables sit in w, in the order of all_depths
+        index = ca.Function("index", [w], [ca.vertcat(*slack_vars)])
+        probe = np.arange(w.numel(), dtype=float)
+        self._slack_index = np.asarray(index(probe), dtype=int).ravel()
+        # blocks of the uniform stages 1..N-1, for the dual shift
+        self._x_blocks = {k: slice(stage_start[k], stage_start[k + 1]) for k in range(1, N)}
+        self._g_blocks = {k: slice(g_start[k], g_start[k + 1]) for k in range(1, N)}
+
+    def shift_duals(self, lam_x: np.ndarray, lam_g: np.ndarray, shift: int) -> tuple[np.ndarray, np.ndarray]:
+        """Duals of stage k+shift moved to stage k, as the primal guess is shifted.
+
+        Stages 1..N-1 have identical variable and constraint layouts, so their multipliers move
+        block by block; stage 0 (x0 equality, s_a, lambda Z) and stage N keep their own.
+        """
+        N = self.layout.horizon
+        if shift <= 0 or N < 3:
+            return lam_x, lam_g
+        lam_x, lam_g = lam_x.copy(), lam_g.copy()
+        xs = self._x_blocks
+        gs = self._g_blocks
+        for k in range(1, N - 1):
+            src = min(k + shift, N - 1)
+            lam_x[xs[k]] = lam_x[xs[src]]
+            lam_g[gs[k]] = lam_g[gs[src]]
+        return lam_x, lam_g
