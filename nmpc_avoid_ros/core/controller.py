@@ -201,8 +201,8 @@ class NmpcController:
     def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> _Plan:
         layout = self.nlp.layout
         U, X, y_a, _ = layout.split_w(w)
-        x_a, u_a = (np.asarray(v).ravel() for v in self.nlp.steady(w))
-        costs = tuple(float(c) for c in self.nlp.terms(w, par))
+        x_a, u_a = (v.copy() for v in self.nlp.steady(w))
+        costs = tuple(float(c[0]) for c in self.nlp.terms(w, par))
         self._plan = _Plan(w, U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
         return self._plan
 
@@ -217,7 +217,7 @@ class NmpcController:
         if self._pending is not None:
             w, lam_x, lam_g = self._pending
             U, X, y_a, rest = layout.split_w(w)
-            x_a, u_a = (np.asarray(v).ravel() for v in self.nlp.steady(w))
+            x_a, u_a = (v.copy() for v in self.nlp.steady(w))
             U = np.vstack([U[1:], u_a])
             X = np.vstack([X[1:], x_a])
             lam_x, lam_g = self.nlp.shift_duals(lam_x, lam_g, 1)

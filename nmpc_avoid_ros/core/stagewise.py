@@ -30,7 +30,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .models import Model, make_model
-from .nlp import SLACK_REGULARISATION, NlpBase, check_sizes, make_solver, problem_parts
+from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, check_sizes, make_solver, problem_parts
 from .settings import ControllerSettings
 
 
@@ -48,28 +48,28 @@ class StagewiseLayout:
     stage_start: np.ndarray  # [N + 1]
     closed_form: bool = True
 
+    def __post_init__(self) -> None:
+        n, m, p, N = self.n, self.m, self.p, self.horizon
+        starts = np.asarray(self.stage_start)
+        # index arrays of x(0..N) [N+1, n], y(0..N) [N+1, p] and u(0..N-1) [N, m] in w
+        self.x_index = starts[:, None] + np.arange(n)
+        self.y_index = starts[:, None] + n + np.arange(p)
+        self.u_index = starts[:N, None] + n + p + np.arange(m)
+
     def split_w(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, None]:
         """w -> U [N, m], X [N, n] (x(1..N)), y_a [p], None."""
         w = np.asarray(w, float).ravel()
-        n, m, p, N = self.n, self.m, self.p, self.horizon
-        starts = self.stage_start
-        U = np.stack([w[starts[k] + n + p: starts[k] + n + p + m] for k in range(N)])
-        X = np.stack([w[starts[k]: starts[k] + n] for k in range(1, N + 1)])
-        return U, X, w[n:n + p].copy(), None
+        return w[self.u_index], w[self.x_index[1:]], w[self.y_index[0]], None
 
     def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: None = None,
                x0: np.ndarray | None = None) -> np.ndarray:
         """Inverse of split_w with x(0) = x0 (zeros if None); slacks zero (see NlpBase.fill_slacks)."""
-        n, m, p, N = self.n, self.m, self.p, self.horizon
         w = np.zeros(self.n_w)
-        starts = self.stage_start
-        states = [np.zeros(n) if x0 is None else np.ravel(x0)] + list(np.reshape(X, (N, n)))
-        U = np.reshape(U, (N, m))
-        for k in range(N + 1):
-            w[starts[k]: starts[k] + n] = states[k]
-            w[starts[k] + n: starts[k] + n + p] = y_a
-            if k < N:
-                w[starts[k] + n + p: starts[k] + n + p + m] = U[k]
+        w[self.x_index[1:]] = np.reshape(X, (self.horizon, self.n))
+        if x0 is not None:
+            w[self.x_index[0]] = np.ravel(x0)
+        w[self.y_index] = np.ravel(y_a)
+        w[self.u_index] = np.reshape(U, (self.horizon, self.m))
         return w
 
 
@@ -186,10 +186,10 @@ class StagewiseNlp(NlpBase):
                   "ng": [int(g_start[k + 1] - g_start[k]) - (n + p if k < N else 0) for k in range(N + 1)]}
         self.solver = make_solver({"x": w, "p": par, "f": cost, "g": g}, s, self.lbg == self.ubg, stages)
         x_a0, u_a0 = steady(Y[0])
-        self.terms = ca.Function("terms", [w, par], [v_offset, v_avoid, tracking])
-        self.steady = ca.Function("steady", [w], [x_a0, u_a0])
-        self.constraint_values = ca.Function("constraints", [w, par], [g])
-        self._slack_value = ca.Function("slack_of", [w, par], [ca.fmax(0, all_depths)])
+        self.terms = Buffered(ca.Function("terms", [w, par], [v_offset, v_avoid, tracking]))
+        self.steady = Buffered(ca.Function("steady", [w], [x_a0, u_a0]))
+        self.constraint_values = Buffered(ca.Function("constraints", [w, par], [g]))
+        self._slack_value = Buffered(ca.Function("slack_of", [w, par], [ca.fmax(0, all_depths)]))
         # where the slack variables sit in w, in the order of all_depths
         index = ca.Function("index", [w], [ca.vertcat(*slack_vars)])
         probe = np.arange(w.numel(), dtype=float)

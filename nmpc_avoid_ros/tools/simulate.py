@@ -18,7 +18,7 @@ import numpy as np
 from ..core.closed_loop import PLANTS, SETTLING_TOLERANCE, ClosedLoopRun, run_closed_loop, settling_step
 from ..core.controller import NmpcController
 from ..core.errors import NmpcError
-from ..core.settings import ControllerSettings, default_config_path, load_params_file
+from ..core.settings import SOLVER_PATHS, ControllerSettings, default_config_path, load_params_file
 
 
 @dataclass
@@ -94,15 +94,29 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--kappa", type=float, help="offset weight")
     ap.add_argument("--horizon", type=int, help="prediction horizon N")
     ap.add_argument("--plant", choices=PLANTS, help="euler: the prediction model; continuous: ZOH + DOP853")
+    ap.add_argument("--solver", help="solver path by name ('list' prints them and exits)")
+    ap.add_argument("--codegen", action=argparse.BooleanOptionalAction, default=None,
+                    help="generate, compile and cache the solver's functions as C (default: the config's)")
     ap.add_argument("--json", type=Path, help="write the run as one JSON object here")
     return ap
 
 
+def print_solvers() -> None:
+    """One line per solver path: name and what it is."""
+    width = max(map(len, SOLVER_PATHS))
+    for name, text in SOLVER_PATHS.items():
+        print(f"{name:<{width}}  {text}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.solver == "list":
+        print_solvers()
+        return 0
     try:
         scenario = load_scenario(args.config, x0=args.x0, target=args.target, steps=args.steps, plant=args.plant,
-                                 mu=args.mu, kappa=args.kappa, horizon=args.horizon)
+                                 mu=args.mu, kappa=args.kappa, horizon=args.horizon, solver=args.solver,
+                                 codegen=args.codegen)
         run, summary = simulate(scenario)
     except NmpcError as exc:
         print(f"simulate: error: {exc}", file=sys.stderr)
@@ -114,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out))
     mx = f" max|x1x2|={summary['max_abs_x1x2']:.4f}" if "max_abs_x1x2" in summary else ""
-    print(f"simulate: {summary['steps']} steps, plant={scenario.plant}, mu={scenario.settings.mu:g}: "
+    print(f"simulate: {summary['steps']} steps, plant={scenario.plant}, mu={scenario.settings.mu:g}, "
+          f"solver={scenario.settings.solver}: "
           f"settled at step {summary['settling_step']}{mx} final error {summary['final_error']:.2e} "
           f"solve median {summary['solve_ms_median']:.1f} ms max {summary['solve_ms_max']:.1f} ms "
           f"fallbacks {summary['fallbacks']}")

@@ -1,0 +1,307 @@
+"""`python -m nmpc_avoid_ros bench [--quick] --json OUT`: every solver path and its peers, one process.
+
+Variants run interleaved sample by sample (variant A's sample k, then B's sample k, ...), so a
+burst of load on the shared machine hits every variant alike. Building a variant is not timed;
+`solve_ms` is the wall time of the solver call alone (do-mpc: `make_step`). Scenarios:
+
+- `paper/<mu>/<plant>`: the paper's example, x0 = [-5, 0], y_t = 5, 50 samples, the shipped
+  config with no obstacle slots (the paper's problem exactly: the two keep-in regions).
+- `scaling/N=<N>`: the mobile robot (config/mobile_robot.yaml) among 4 ellipses, N = 5..100.
+- `moving_obstacle`: the mobile robot at N = 20 while an ellipse moves every sample (the
+  obstacle set changes every sample; no variant may rebuild).
+
+Then, unless --no-node: the controller node's latency (state received -> command published)
+through DDS, and its start-up time with a cold and a warm solver cache.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.closed_loop import SETTLING_TOLERANCE, ContinuousPlant, DiscretePlant, settling_step
+from ..core.errors import NmpcError
+from ..core.models import Model, make_model
+from ..core.regions import Ellipse, Region
+from ..core.settings import ControllerSettings, default_config_path, load_params_file
+from .variants import OursStepper, Sample, Stepper
+
+#: the reference all quality figures are compared with: the paper's formulation as written
+REFERENCE = "opti_ipopt_paper"
+
+
+def ours(solver: str, codegen: bool = True, **changes: Any) -> Callable[[ControllerSettings, Model], Stepper]:
+    """Factory of our controller on a solver path (codegen on: the compiled, cached oracles)."""
+    def make(settings: ControllerSettings, model: Model) -> Stepper:
+        return OursStepper(settings.replace(solver=solver, codegen=codegen, **changes), model)
+    return make
+
+
+def variant_factories() -> dict[str, Callable[[ControllerSettings, Model], Stepper]]:
+    """Every benchmarked variant by name (peers imported lazily: do-mpc is slow to import)."""
+    from .peers import PEERS
+
+    return {
+        REFERENCE: PEERS["opti_ipopt_paper"],
+        "ours_ipopt": ours("ipopt", codegen=False),
+        "ours_fatrop": ours("fatrop"),
+        "ours_sqp": ours("sqp"),
+        "ours_sqp_hpipm": ours("sqp_hpipm"),
+        "ours_sqp_rt": ours("sqp", max_iterations=REAL_TIME_ITERATIONS),
+        "do_mpc": PEERS["do_mpc"],
+        "do_mpc_unshifted": PEERS["do_mpc_unshifted"],
+    }
+
+
+#: the real-time variant's fixed work budget: SQP iterations per sample
+REAL_TIME_ITERATIONS = 4
+
+
+@dataclass
+class Scenario:
+    """One closed-loop case: settings, plant, start, target, and the regions of each sample."""
+
+    name: str
+    settings: ControllerSettings
+    model: Model
+    x0: np.ndarray
+    target: np.ndarray
+    steps: int
+    plant: str
+    regions: Callable[[int], Sequence[Region] | None] | None = None
+    skip: frozenset[str] = field(default_factory=frozenset)
+
+
+def _config(name: str) -> dict[str, Any]:
+    path = default_config_path().parent / name
+    return load_params_file(path).section("controller")
+
+
+def paper_scenarios(steps: int) -> list[Scenario]:
+    """The four paper runs (mu 0 / 1e8, Euler / continuous plant)."""
+    base = ControllerSettings.from_params(_config("van_der_pol.yaml")).replace(max_ellipses=0, max_polygons=0)
+    model = make_model(base.model)
+    return [Scenario(f"paper/mu={mu:g}/{plant}", base.replace(mu=mu), model, np.array([-5.0, 0.0]),
+                     np.array([5.0]), steps, plant)
+            for mu in (0.0, 1e8) for plant in ("euler", "continuous")]
+
+
+ROBOT_ELLIPSES = (Ellipse((-4.0, -3.5), (1.2, 0.8), 0.3, "output"), Ellipse((0.0, 0.5), (1.0, 1.4), 0.0, "output"),
+                  Ellipse((3.5, 2.0), (0.9, 0.9), 0.0, "output"), Ellipse((5.5, 5.0), (0.8, 1.2), -0.4, "output"))
+
+
+def robot_settings(horizon: int) -> ControllerSettings:
+    """The mobile robot's config with room for exactly 4 ellipses and no polygons."""
+    return ControllerSettings.from_params(_config("mobile_robot.yaml")).replace(
+        horizon=horizon, max_ellipses=4, max_polygons=0)
+
+
+def scaling_scenarios(horizons: Sequence[int], steps: int) -> list[Scenario]:
+    """The mobile robot from (-8, -6) to (8, 6) among 4 ellipses for each horizon N."""
+    out = []
+    for N in horizons:
+        s = robot_settings(N)
+        out.append(Scenario(f"scaling/N={N}", s, make_model(s.model), np.array([-8.0, -6.0, 0.0, 0.0]),
+                            np.array([8.0, 6.0]), steps, "continuous",
+                            lambda k: ROBOT_ELLIPSES if k == 0 else None))
+    return out
+
+
+def moving_obstacle_scenario(steps: int) -> Scenario:
+    """N = 20; an ellipse sweeps across the path, moved every sample (a new region set each sample)."""
+    s = robot_settings(20)
+
+    def regions(k: int) -> list[Region]:
+        t = k * s.sample_time
+        moving = Ellipse((2.0 * math.cos(0.4 * t), -1.0 + 0.25 * t), (0.8, 0.6), 0.2 * t, "output")
+        return [*ROBOT_ELLIPSES[:3], moving]
+
+    return Scenario("moving_obstacle", s, make_model(s.model), np.array([-8.0, -6.0, 0.0, 0.0]),
+                    np.array([8.0, 6.0]), steps, "continuous", regions)
+
+
+class _Loop:
+    """One variant's closed loop, advanced one sample at a time."""
+
+    def __init__(self, stepper: Stepper, scenario: Scenario) -> None:
+        s = scenario.settings
+        self.stepper, self.scenario = stepper, scenario
+        self.sim = (DiscretePlant(scenario.model, s.sample_time, s.discretization) if scenario.plant == "euler"
+                    else ContinuousPlant(scenario.model))
+        self.x = scenario.x0.copy()
+        self.xs, self.us, self.samples, self.in_force = [self.x], [], [], []
+        self.current: tuple[Region, ...] = ()
+
+    def advance(self, k: int) -> None:
+        new = self.scenario.regions(k) if self.scenario.regions else None
+        if new is not None:
+            self.current = tuple(new)
+        sample: Sample = self.stepper.step(self.x, self.scenario.target, new)
+        self.x = self.sim.advance(self.x, sample.u, self.scenario.settings.sample_time)
+        self.xs.append(self.x)
+        self.us.append(np.asarray(sample.u, float))
+        self.samples.append(sample)
+        self.in_force.append(self.current)
+
+
+def _penetration(model: Model, settings: ControllerSettings, x: np.ndarray, u: np.ndarray,
+                 regions: Sequence[Region]) -> float:
+    """Largest max(0, g) of the regions at one state (ellipse g: 1 - normalised radius^2)."""
+    if not regions:
+        return 0.0
+    y = np.asarray(model.output(x, u)).ravel()
+    worst = 0.0
+    for region in regions:
+        point = x[list(settings.plane)] if region.frame == "state" else y[list(settings.output_plane)]
+        worst = max(worst, region.depth(point))
+    return worst
+
+
+def quality(loop: _Loop) -> dict[str, Any]:
+    """Settling step, final error and the avoidance figure of one run."""
+    sc, s = loop.scenario, loop.scenario.settings
+    xs, us = np.array(loop.xs), np.array(loop.us)
+    ys = np.array([np.asarray(sc.model.output(x, us[min(k, len(us) - 1)])).ravel() for k, x in enumerate(xs)])
+    error = np.linalg.norm(ys - sc.target, axis=1)
+    out: dict[str, Any] = {"settling_step": settling_step(error, 0.0, SETTLING_TOLERANCE),
+                           "final_error": float(error[-1])}
+    if sc.model.name == "van_der_pol":
+        out["max_abs_x1x2"] = float(np.max(np.abs(xs[:, 0] * xs[:, 1])))
+    else:
+        out["max_penetration"] = float(max(_penetration(sc.model, s, xs[k + 1], us[k], loop.in_force[k])
+                                           for k in range(len(us))))
+    return out
+
+
+def record(name: str, loop: _Loop, build_s: float) -> dict[str, Any]:
+    """The JSON record of one variant on one scenario."""
+    times = np.array([smp.solve_time for smp in loop.samples]) * 1e3
+    iters = np.array([smp.iterations for smp in loop.samples])
+    sample_ms = loop.scenario.settings.sample_time * 1e3
+    return {
+        "variant": name,
+        "scenario": loop.scenario.name,
+        "horizon": loop.scenario.settings.horizon,
+        "samples": len(times),
+        "build_s": round(build_s, 3),
+        "solve_ms": {"median": float(np.median(times)), "p90": float(np.percentile(times, 90)),
+                     "p99": float(np.percentile(times, 99)), "max": float(np.max(times))},
+        "iterations": {"median": float(np.median(iters)), "max": int(np.max(iters))},
+        "failures": int(sum(smp.failed for smp in loop.samples)),
+        "fallbacks": int(sum(smp.fallback for smp in loop.samples)),
+        "budget_cut": int(sum(smp.budget_exhausted for smp in loop.samples)),
+        "missed_samples": int(np.sum(times > sample_ms)),
+        **quality(loop),
+    }
+
+
+def run_scenario(scenario: Scenario, factories: dict[str, Callable], progress: Callable[[str], None]) -> list[dict]:
+    """All variants on one scenario, interleaved per sample; records with the reference's quality."""
+    loops: dict[str, _Loop] = {}
+    builds: dict[str, float] = {}
+    for name, factory in factories.items():
+        if name in scenario.skip:
+            continue
+        start = time.perf_counter()
+        loops[name] = _Loop(factory(scenario.settings, scenario.model), scenario)
+        builds[name] = time.perf_counter() - start
+    for k in range(scenario.steps):
+        for loop in loops.values():
+            loop.advance(k)
+    records = [record(name, loop, builds[name]) for name, loop in loops.items()]
+    ref = next((r for r in records if r["variant"] == REFERENCE), None)
+    for r in records:
+        if ref is not None:
+            r["reference"] = {k: ref[k] for k in ("settling_step", "final_error", "max_abs_x1x2", "max_penetration")
+                              if k in ref}
+            r["speedup_vs_reference"] = {"median": ref["solve_ms"]["median"] / r["solve_ms"]["median"],
+                                         "max": ref["solve_ms"]["max"] / r["solve_ms"]["max"]}
+        progress(f"{scenario.name:24s} {r['variant']:18s} median {r['solve_ms']['median']:8.3f} ms "
+                 f"p99 {r['solve_ms']['p99']:8.3f} max {r['solve_ms']['max']:8.3f} settle {r['settling_step']} "
+                 f"fail {r['failures']} missed {r['missed_samples']}")
+    return records
+
+
+def machine() -> dict[str, Any]:
+    """What the numbers were measured on."""
+    import casadi
+
+    info = {"python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count(),
+            "casadi": casadi.__version__}
+    try:
+        info["load_average"] = os.getloadavg()
+        info["cpu"] = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                            if line.startswith("model name")), "unknown")
+    except OSError:
+        pass
+    return info
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer samples and horizons (under 2 minutes)")
+    ap.add_argument("--json", type=Path, required=True, help="write the records here")
+    ap.add_argument("--variants", help="comma-separated subset of the variants (default: all)")
+    ap.add_argument("--no-node", action="store_true", help="skip the controller node's latency and start-up")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    factories = variant_factories()
+    if args.variants:
+        wanted = args.variants.split(",")
+        unknown = sorted(set(wanted) - set(factories))
+        if unknown:
+            print(f"bench: error: unknown variant(s) {', '.join(unknown)}; known: {', '.join(factories)}",
+                  file=sys.stderr)
+            return 2
+        factories = {k: v for k, v in factories.items() if k in wanted}
+
+    def progress(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    if args.quick:
+        scenarios = [*paper_scenarios(50), *scaling_scenarios((5, 20, 50), 8), moving_obstacle_scenario(16)]
+    else:
+        scenarios = [*paper_scenarios(50), *scaling_scenarios((5, 10, 20, 50, 100), 40), moving_obstacle_scenario(60)]
+    # the peers at N = 100 take seconds per sample; the quick run leaves them out of long horizons
+    slow = frozenset({REFERENCE, "do_mpc", "do_mpc_unshifted", "ours_ipopt"})
+    for sc in scenarios:
+        if args.quick and sc.settings.horizon >= 50:
+            sc.skip = slow - {REFERENCE}
+    started = time.perf_counter()
+    records: list[dict] = []
+    try:
+        for sc in scenarios:
+            records += run_scenario(sc, factories, progress)
+        node = None if args.no_node else node_benchmark(quick=args.quick, progress=progress)
+    except NmpcError as exc:
+        print(f"bench: error: {exc}", file=sys.stderr)
+        return 2
+    out = {"command": "python -m nmpc_avoid_ros bench" + (" --quick" if args.quick else ""),
+           "machine": machine(), "seconds": round(time.perf_counter() - started, 1),
+           "records": records, "node": node}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(out, indent=1))
+    progress(f"bench: {len(records)} records in {out['seconds']} s -> {args.json}")
+    return 0
+
+
+def node_benchmark(quick: bool, progress: Callable[[str], None]) -> dict[str, Any]:
+    """Latency and start-up of the controller node through DDS (see bench/node.py)."""
+    from .node import measure_node
+
+    result = measure_node(samples=60 if quick else 300, progress=progress)
+    return result

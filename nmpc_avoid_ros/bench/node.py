@@ -1,0 +1,178 @@
+"""The controller node through real DDS: latency per sample and start-up with a cold/warm cache.
+
+A probe node in this process plays the plant (the paper's Euler map): it publishes a state,
+waits for the command, integrates one sample and publishes the next state. Measured:
+
+- `step_latency_ms`: inside the node, from the start of the solve to the command published
+  (the node's own diagnostics, one value per sample);
+- `round_trip_ms`: at the probe, from publishing the state to receiving the command (two DDS
+  hops plus the node's work: an upper bound of "state received -> command published");
+- `startup_s`: from starting the node's process to its first command, with an empty solver
+  cache (cold: generate and compile) and again with the cache it left (warm).
+
+The graph is isolated: its own ROS_DOMAIN_ID, localhost discovery, logs in a temp folder; the
+node runs in its own process group and is stopped by PID.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.models import make_model
+from ..core.settings import default_config_path
+from ..tools.processes import NodeProcess
+
+#: node parameters of the measured controller: the fast path, compiled, solving on each state
+NODE_PARAMETERS = {"solver": "sqp", "codegen": "true", "lockstep": "true", "max_ellipses": "0",
+                   "max_polygons": "0", "target": "[5.0]"}
+
+
+def _env(domain: int, log_dir: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_LOG_DIR=str(log_dir),
+               PYTHONUNBUFFERED="1")
+    return env
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    arr = np.asarray(values, float)
+    if arr.size == 0:
+        return {"count": 0}
+    return {"count": int(arr.size), "median": float(np.median(arr)), "p90": float(np.percentile(arr, 90)),
+            "p99": float(np.percentile(arr, 99)), "max": float(arr.max())}
+
+
+def measure_node(samples: int = 300, progress: Callable[[str], None] = print, domain: int | None = None,
+                 timeout: float = 120.0) -> dict[str, Any]:
+    """Start the controller twice (cold, warm cache); returns latency and start-up statistics."""
+    domain = domain if domain is not None else 150 + os.getpid() % 60
+    os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    with tempfile.TemporaryDirectory(prefix="nmpc_bench_") as tmp:
+        tmp_path = Path(tmp)
+        os.environ.setdefault("ROS_LOG_DIR", str(tmp_path / "ros_logs"))
+        cache = tmp_path / "cache"
+        import rclpy
+
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=domain)
+        try:
+            probe = _PlantProbe(context)
+            runs = {}
+            for label in ("cold", "warm"):
+                runs[label] = _one_start(probe, label, cache, domain, tmp_path, samples if label == "warm" else 20,
+                                         timeout, progress)
+        finally:
+            probe.close()
+            rclpy.try_shutdown(context=context)
+    warm = runs["warm"]
+    return {"parameters": NODE_PARAMETERS, "startup_s": {k: v["startup_s"] for k, v in runs.items()},
+            "step_latency_ms": _stats(warm["step_latency_ms"]), "round_trip_ms": _stats(warm["round_trip_ms"]),
+            "missed_samples": warm["missed"], "samples": warm["samples"]}
+
+
+class _PlantProbe:
+    """Publishes states, receives commands and the controller's diagnostics."""
+
+    def __init__(self, context) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_msgs.msg import Float64MultiArray
+
+        from ..ros.parameters import STREAM_QOS
+
+        self.node = rclpy.create_node("bench_plant_probe", context=context)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.msg_type = Float64MultiArray
+        self.state_pub = self.node.create_publisher(Float64MultiArray, "state", STREAM_QOS)
+        self.commands: list[tuple[float, np.ndarray]] = []
+        self.latencies: list[float] = []
+        self.node.create_subscription(Float64MultiArray, "command",
+                                      lambda m: self.commands.append((time.perf_counter(), np.array(m.data))),
+                                      STREAM_QOS)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, STREAM_QOS)
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if "step_latency_ms" in values and values.get("status") not in (None, ""):
+                self.latencies.append(float(values["step_latency_ms"]))
+
+    def publish(self, x: np.ndarray) -> float:
+        msg = self.msg_type()
+        msg.data = [float(v) for v in x]
+        sent = time.perf_counter()
+        self.state_pub.publish(msg)
+        return sent
+
+    def wait_command(self, count: int, timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while len(self.commands) < count and time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.001)
+        return len(self.commands) >= count
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Path, samples: int,
+               timeout: float, progress: Callable[[str], None]) -> dict[str, Any]:
+    """Start the node, time its first command, then run `samples` lockstep samples."""
+    config = default_config_path()
+    args = ["--ros-args", "--params-file", str(config), "-p", f"cache_dir:={cache}"]
+    for key, value in NODE_PARAMETERS.items():
+        args += ["-p", f"{key}:={value}"]
+    model = make_model("van_der_pol")
+    step = model.discrete(0.5, "euler")
+    x = np.array([-5.0, 0.0])
+    started = time.perf_counter()
+    proc = NodeProcess("controller", args, _env(domain, tmp / "ros_logs"), tmp / "logs")
+    try:
+        # re-send x0 until the first command: discovery and the solver build happen meanwhile
+        first = None
+        while first is None:
+            if not proc.alive():
+                raise RuntimeError(f"controller exited during start-up:\n{proc.output()[-2000:]}")
+            if time.perf_counter() - started > timeout:
+                raise RuntimeError(f"controller gave no command within {timeout} s")
+            probe.publish(x)
+            if probe.wait_command(1, 0.05):
+                first = probe.commands[0][0] - started
+        progress(f"node start-up ({label} cache): {first:.2f} s to the first command")
+        _drain(probe, 1.0)  # the answers to the repeated x0 messages
+        round_trips, missed = [], 0
+        x = np.array([-5.0, 0.0])
+        for k in range(samples):
+            if k % 50 == 0:
+                x = np.array([-5.0, 0.0])  # restart the paper run: a new transient every 50 samples
+            count = len(probe.commands) + 1
+            sent = probe.publish(x)
+            if not probe.wait_command(count, 0.5):
+                missed += 1
+                continue
+            received, u = probe.commands[-1]
+            round_trips.append((received - sent) * 1e3)
+            x = np.asarray(step(x, u)).ravel()
+        probe.executor.spin_once(timeout_sec=0.2)
+        latencies = list(probe.latencies[-len(round_trips):]) if round_trips else []
+        return {"startup_s": round(first, 3), "round_trip_ms": round_trips, "step_latency_ms": latencies,
+                "missed": missed, "samples": samples}
+    finally:
+        proc.stop()
+        _drain(probe, 0.5)  # nothing of this node may count for the next start
+
+
+def _drain(probe: _PlantProbe, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        probe.executor.spin_once(timeout_sec=0.01)
+    probe.commands.clear()
+    probe.latencies.clear()
