@@ -1,0 +1,196 @@
+"""Summary plots of a campaign (matplotlib, Agg): errors, penetration, solve times, examples.
+
+Reads the per-scenario records of `campaign.jsonl` (with their traces); see tools/campaign.py.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..bag.figures import draw_region, plt, shade_product_region
+from ..core.closed_loop import SETTLING_TOLERANCE
+from ..core.regions import Ellipse
+from ..core.settings import ControllerSettings, load_params_file
+
+FAMILY_TITLES = {"vdp": "van der Pol", "robot": "mobile robot"}
+OUTCOMES = (("converged", "tab:green"), ("stop short", "tab:orange"), ("not at rest", "tab:red"),
+            ("other", "tab:gray"))
+
+
+def outcome(rec: Mapping[str, Any]) -> str:
+    """'converged', 'stop short', 'not at rest' or 'other' (at rest near y* but not settled for good)."""
+    if rec["converged"]:
+        return "converged"
+    if rec["stop_short"]:
+        return "stop short"
+    if not rec["at_rest"]:
+        return "not at rest"
+    return "other"
+
+
+def _families(records: Sequence[Mapping[str, Any]]) -> list[str]:
+    return list(dict.fromkeys(r["family"] for r in records))
+
+
+def _save(fig: plt.Figure, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def final_error_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
+    """Histogram of |y_K - y*| (log scale) per family, stacked by outcome."""
+    fams = _families(records)
+    fig, axes = plt.subplots(1, len(fams), figsize=(5.5 * len(fams), 3.6), dpi=110, squeeze=False)
+    for ax, fam in zip(axes[0], fams):
+        recs = [r for r in records if r["family"] == fam]
+        bins = np.linspace(-12, 2, 57)
+        data, colors, labels = [], [], []
+        for name, color in OUTCOMES:
+            vals = [math.log10(max(r["error_to_best"], 1e-12)) for r in recs if outcome(r) == name]
+            if vals:
+                data.append(vals)
+                colors.append(color)
+                labels.append(f"{name} ({len(vals)})")
+        ax.hist(data, bins=bins, stacked=True, color=colors, label=labels)
+        ax.axvline(math.log10(SETTLING_TOLERANCE), color="k", ls="--", lw=1, label=f"tolerance {SETTLING_TOLERANCE:g}")
+        ax.set_xlabel("log10 |y_K - y*|  (y* = best reachable point)")
+        ax.set_ylabel("scenarios")
+        ax.set_title(f"{FAMILY_TITLES.get(fam, fam)}: final distance to y*")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def penetration_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
+    """Histogram of the max penetration per run (runs that never entered a region are counted apart)."""
+    fams = _families(records)
+    fig, axes = plt.subplots(1, len(fams), figsize=(5.5 * len(fams), 3.6), dpi=110, squeeze=False)
+    for ax, fam in zip(axes[0], fams):
+        recs = [r for r in records if r["family"] == fam]
+        bins = np.linspace(-10, 1, 45)
+        for key, color, label in (("max_penetration_keep_in", "tab:purple", "keep-in (expression g)"),
+                                  ("max_penetration_obstacles", "tab:red", "ellipses (1 - r^2)")):
+            vals = [r[key] for r in recs]
+            pos = [math.log10(v) for v in vals if v > 0]
+            zero = sum(v <= 0 for v in vals)
+            ax.hist(pos, bins=bins, alpha=0.6, color=color, label=f"{label}: {zero} runs never inside")
+        ax.set_xlabel("log10 max penetration")
+        ax.set_ylabel("scenarios")
+        ax.set_title(f"{FAMILY_TITLES.get(fam, fam)}: deepest sampled point inside a region")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def solve_time_plot(records: Sequence[Mapping[str, Any]], settings: Mapping[str, ControllerSettings],
+                    path: Path) -> Path:
+    """Distribution of every sample's solve time (ms, log bins), with the budget and Ts marked."""
+    fams = _families(records)
+    fig, axes = plt.subplots(1, len(fams), figsize=(5.5 * len(fams), 3.6), dpi=110, squeeze=False)
+    for ax, fam in zip(axes[0], fams):
+        vals = np.concatenate([r["trace"]["solve_ms"] for r in records if r["family"] == fam])
+        vals = np.maximum(vals, 1e-2)
+        ax.hist(vals, bins=np.logspace(math.log10(vals.min()), math.log10(max(vals.max(), 10 * vals.min())), 60),
+                color="tab:blue")
+        s = settings.get(fam)
+        if s is not None:
+            ax.axvline(s.max_solve_time * 1e3, color="tab:orange", ls="--", label=f"budget {s.max_solve_time:g} s")
+            ax.axvline(s.sample_time * 1e3, color="tab:red", ls=":", label=f"Ts {s.sample_time:g} s")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        p50, p99 = np.percentile(vals, [50, 99])
+        ax.set_title(f"{FAMILY_TITLES.get(fam, fam)}: {len(vals)} solves, median {p50:.0f} ms, "
+                     f"p99 {p99:.0f} ms, max {vals.max():.0f} ms", fontsize=9)
+        ax.set_xlabel("solve time (ms)")
+        ax.set_ylabel("samples")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def _regions(rec: Mapping[str, Any]) -> list[Ellipse]:
+    return [Ellipse(tuple(e["center"]), tuple(e["semi_axes"]), e["yaw"], e["frame"]) for e in rec["spec"]["ellipses"]]
+
+
+EXAMPLE_PICKS: tuple[tuple[str, Callable[[Mapping[str, Any]], bool]], ...] = (
+    ("converged among ellipses", lambda r: r["converged"] and r["n_ellipses"] >= 2),
+    ("stop short: region covers y*", lambda r: r["stop_short_cause"] == "obstacle_covers_target"),
+    ("stop short: no passage", lambda r: r["stop_short_cause"] == "no_passage"),
+    ("stop short: local minimum", lambda r: r["stop_short_cause"] == "local_minimum"),
+    ("unreachable target", lambda r: not r["reachable"] and r["converged"]),
+    ("not at rest", lambda r: not r["at_rest"]),
+    ("fallback used", lambda r: r["fallbacks"] > 0),
+)
+
+
+def pick_examples(records: Sequence[Mapping[str, Any]], limit: int = 4) -> list[tuple[str, Mapping[str, Any]]]:
+    """Up to `limit` illustrative scenarios (first match of each kind, in id order)."""
+    out = []
+    for label, pred in EXAMPLE_PICKS:
+        match = next((r for r in sorted(records, key=lambda r: r["id"]) if pred(r)), None)
+        if match is not None and len(out) < limit:
+            out.append((label, match))
+    return out
+
+
+def examples_plot(records: Sequence[Mapping[str, Any]], fam: str, path: Path) -> Path | None:
+    """Phase portraits (van der Pol) or paths (robot) of a few illustrative scenarios."""
+    picks = pick_examples([r for r in records if r["family"] == fam])
+    if not picks:
+        return None
+    cols = 2 if len(picks) > 1 else 1
+    rows = math.ceil(len(picks) / cols)
+    vdp = fam == "vdp"
+    fig, axes = plt.subplots(rows, cols, figsize=(6.2 * cols, (3.6 if vdp else 5.2) * rows), dpi=100, squeeze=False)
+    for ax in axes.ravel()[len(picks):]:
+        ax.axis("off")
+    for ax, (label, rec) in zip(axes.ravel(), picks):
+        x = np.asarray(rec["trace"]["x"])
+        if vdp:
+            xlim, ylim = (-6.5, 6.5), (-2.2, 2.2)
+            shade_product_region(ax, 2.0, xlim, ylim)
+            ax.add_patch(plt.Rectangle((-6, -2), 12, 4, fill=False, ec="k", lw=0.8))
+            target_pt, best_pt = (rec["spec"]["target"][0], 0), (rec["y_star"][0], 0)
+            adm_pt = (rec["y_admissible"][0], 0)
+        else:
+            xlim = ylim = (-11.5, 11.5)
+            ax.add_patch(plt.Rectangle((-10, -10), 20, 20, fill=False, ec="k", lw=0.8))
+            target_pt, best_pt, adm_pt = rec["spec"]["target"], rec["y_star"], rec["y_admissible"]
+            ax.set_aspect("equal")
+        for region in _regions(rec):
+            draw_region(ax, region, alpha=0.45)
+        ax.plot(x[:, 0], x[:, 1], "-o", ms=2, lw=1.3, color="tab:blue", label="closed loop")
+        ax.plot(x[0, 0], x[0, 1], "ks", ms=6, label="start")
+        ax.plot(*target_pt, "kx", ms=9, mew=2, label="target y_t")
+        ax.plot(*best_pt, "o", mfc="none", mec="tab:green", ms=10, mew=1.5, label="best reachable y*")
+        if np.all(np.isfinite(adm_pt)) and not np.allclose(adm_pt, best_pt):
+            ax.plot(*adm_pt, "D", mfc="none", mec="tab:purple", ms=8, label="best admissible y~")
+        ax.set_xlim(xlim)
+        ax.set_ylim(ylim)
+        ax.set_xlabel("x1" if vdp else "px (m)")
+        ax.set_ylabel("x2" if vdp else "py (m)")
+        extra = f", stopped {rec['stop_short_distance']:.2f} short" if rec["stop_short"] else ""
+        ax.set_title(f"{rec['id']}: {label}{extra}", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc="lower right")
+    return _save(fig, path)
+
+
+def write_plots(out: Path, records: Sequence[Mapping[str, Any]], configs: Mapping[str, str]) -> list[Path]:
+    """All campaign plots into `out`; returns the files written."""
+    settings = {fam: ControllerSettings.from_params(load_params_file(cfg).section("controller"))
+                for fam, cfg in configs.items()}
+    paths = [final_error_plot(records, out / "final_error.png"), penetration_plot(records, out / "penetration.png"),
+             solve_time_plot(records, settings, out / "solve_time.png")]
+    for fam in _families(records):
+        p = examples_plot(records, fam, out / f"examples_{fam}.png")
+        if p is not None:
+            paths.append(p)
+    return paths

@@ -1,0 +1,145 @@
+"""`python -m nmpc_avoid_ros campaign`: a tiny campaign through main(), its JSON, resumability."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from nmpc_avoid_ros.core.closed_loop import SETTLING_TOLERANCE
+from nmpc_avoid_ros.core.models import make_model
+from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.tools.campaign import (
+    JSON_NAME,
+    JSONL_NAME,
+    ReachableSet,
+    families,
+    load_settings,
+    main,
+    make_specs,
+    planar_passage,
+    vdp_passage,
+)
+
+# seed 2: vdp-0004 (unreachable target -6.4) and vdp-0005 (target 0.8) have no ellipse
+SEED = "2"
+TIMING_KEYS = {"solve_ms_max", "solve_ms_median_of_medians"}
+
+
+def _args(out, *extra):
+    # an iteration budget only (no wall-time cut): the outcome does not depend on the machine's load
+    return ["--out", str(out), "--vdp", "6", "--robot", "2", "--seed", SEED, "--vdp-steps", "60", "--robot-steps", "20",
+            "--max-solve-time", "30", "--no-progress", *extra]
+
+
+def _lines(path):
+    return path.read_text().splitlines()
+
+
+def _untimed(summary):
+    return {fam: {k: v for k, v in s.items() if k not in TIMING_KEYS} for fam, s in summary.items()}
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    """An interrupted campaign (3 of 8 scenarios), then the rest: (out dir, printed output of the completion)."""
+    out = tmp_path_factory.mktemp("campaign")
+    assert main(_args(out, "--jobs", "2", "--stop-after", "3", "--no-plots")) == 0
+    assert len(_lines(out / JSONL_NAME)) == 3
+    assert len(json.loads((out / JSON_NAME).read_text())["scenarios"]) == 3
+    assert main(_args(out, "--jobs", "2")) == 0
+    return out
+
+
+def test_json_structure_and_sensible_values(campaign):
+    data = json.loads((campaign / JSON_NAME).read_text())
+    assert set(data) == {"meta", "definitions", "summary", "scenarios"}
+    ids = [r["id"] for r in data["scenarios"]]
+    assert ids == [f"vdp-{i:04d}" for i in range(6)] + ["robot-0000", "robot-0001"]
+    assert all("trace" not in r for r in data["scenarios"])
+    for fam, n in (("vdp", 6), ("robot", 2)):
+        s = data["summary"][fam]
+        assert s["scenarios"] == n
+        for key in ("share_converged", "share_near", "share_near_admissible", "recursive_feasibility_rate"):
+            assert 0.0 <= s[key] <= 1.0
+        assert s["max_penetration"] >= 0 and s["fallbacks"] >= 0 and s["stop_short"] >= 0
+        assert s["samples"] == n * data["meta"]["steps"][fam]
+    by_id = {r["id"]: r for r in data["scenarios"]}
+    for r in data["scenarios"]:
+        if r["family"] == "vdp":  # Y_r = [-5.94, 5.94]: the projection is a clip
+            assert r["y_star"][0] == pytest.approx(np.clip(r["spec"]["target"][0], -5.94, 5.94), abs=1e-6)
+        assert r["reachable"] == (np.linalg.norm(np.subtract(r["y_star"], r["spec"]["target"])) < 1e-6)
+        assert r["stop_short"] == (r["at_rest"] and not r["converged"])
+        assert r["converged"] <= r["near"]
+        if r["stop_short"]:
+            assert r["stop_short_distance"] >= SETTLING_TOLERANCE and r["stop_short_cause"]
+    # no obstacle besides |x1 x2| <= 2: a reachable target is reached, an unreachable one ends at y* = -5.94
+    for sid in ("vdp-0004", "vdp-0005"):
+        r = by_id[sid]
+        assert r["n_ellipses"] == 0 and r["initial_feasible"]
+        assert r["converged"] and r["near"] and not r["stop_short"], r
+        assert r["max_penetration"] < 1e-3 and r["fallbacks"] == 0
+        assert r["rf_kept"] == r["rf_pairs"] == r["samples"] - 1
+    assert not by_id["vdp-0004"]["reachable"] and by_id["vdp-0004"]["final_y"][0] == pytest.approx(-5.94, abs=0.05)
+    assert by_id["vdp-0005"]["reachable"] and by_id["vdp-0005"]["error_to_target"] < SETTLING_TOLERANCE
+    for name in ("final_error.png", "penetration.png", "solve_time.png", "examples_vdp.png"):
+        assert (campaign / name).stat().st_size > 5000
+
+
+def test_rerun_does_no_new_work_and_gives_the_same_summary(campaign, capsys):
+    before = (campaign / JSONL_NAME).read_bytes()
+    summary = json.loads((campaign / JSON_NAME).read_text())["summary"]
+    assert main(_args(campaign, "--jobs", "2", "--no-plots")) == 0
+    assert "8 of 8 scenarios already done, 0 to run" in capsys.readouterr().out
+    assert (campaign / JSONL_NAME).read_bytes() == before
+    assert json.loads((campaign / JSON_NAME).read_text())["summary"] == summary
+
+
+def test_a_crash_mid_write_is_completed(campaign, tmp_path, capsys):
+    """Two records lost and a torn last line (killed while writing): the rerun runs exactly those two."""
+    out = tmp_path / "crashed"
+    shutil.copytree(campaign, out)
+    lines = _lines(out / JSONL_NAME)
+    lost = [i for i, line in enumerate(lines) if json.loads(line)["id"] in ("vdp-0004", "vdp-0005")]
+    kept = [line for i, line in enumerate(lines) if i not in lost]
+    (out / JSONL_NAME).write_text("\n".join(kept) + "\n" + lines[lost[0]][:40])
+    assert main(_args(out, "--jobs", "1", "--no-plots")) == 0
+    assert "6 of 8 scenarios already done, 2 to run" in capsys.readouterr().out
+    assert len(_lines(out / JSONL_NAME)) == 8
+    old = json.loads((campaign / JSON_NAME).read_text())
+    new = json.loads((out / JSON_NAME).read_text())
+    assert _untimed(new["summary"]) == _untimed(old["summary"])
+
+
+def test_another_seed_in_the_same_directory_is_refused(campaign, capsys):
+    assert main(["--out", str(campaign), "--vdp", "1", "--robot", "0", "--seed", "99", "--no-progress"]) == 2
+    assert "seed" in capsys.readouterr().err
+
+
+def test_scenarios_are_reproducible_and_independent_of_the_count():
+    fam = families()["vdp"]
+    settings = load_settings(fam.config)
+    few, more = make_specs(fam, 3, 7, settings, "euler"), make_specs(fam, 10, 7, settings, "euler")
+    assert few == more[:3]
+    for spec in more:
+        x1, x2 = spec["x0"]
+        assert abs(x1) <= 6 and abs(x2) <= 2 and abs(x1 * x2) <= 2 and -8 <= spec["target"][0] <= 8
+        for e in spec["ellipses"]:
+            assert Ellipse(tuple(e["center"]), tuple(e["semi_axes"]), e["yaw"]).depth((x1, x2)) < 0
+
+
+def test_reachable_set_and_passages():
+    fams = families()
+    robot = load_settings(fams["robot"].config)
+    reach = ReachableSet(robot, make_model(robot.model))
+    np.testing.assert_allclose(reach.project([12.0, -3.0]), [9.9, -3.0], atol=1e-6)
+    wall = Ellipse((0.0, 0.0), (1.0, 30.0))  # a wall across the plane at x = 0
+    free = reach.best_admissible([0.0, 0.0], np.array([0.0, 0.0]), [wall])
+    assert abs(abs(free[0]) - 1.0) < 0.01 and abs(free[1]) < 0.01
+    assert not planar_passage(np.array([-5.0, 0.0]), np.array([5.0, 0.0]), [wall])
+    assert planar_passage(np.array([-5.0, 0.0]), np.array([5.0, 0.0]), [Ellipse((0.0, 0.0), (1.0, 3.0))])
+    # van der Pol: moving right needs x2 > 0; an ellipse over 0 < x2 <= 2/x1 at x1 = 3 closes the way
+    assert not vdp_passage(np.array([1.0, 0.0]), np.array([5.0]), [Ellipse((3.0, 0.5), (0.3, 1.0))])
+    assert vdp_passage(np.array([1.0, 0.0]), np.array([5.0]), [Ellipse((3.0, -0.5), (0.3, 0.45))])
