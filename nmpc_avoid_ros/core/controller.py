@@ -88,8 +88,12 @@ class _Plan:
     costs: tuple[float, float, float] = field(default=(math.nan, math.nan, math.nan))
 
 
-def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int) -> np.ndarray:
-    """A finite float vector of exactly `size` entries, else InputError naming the problem."""
+def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int, max_abs: float = 1e12) -> np.ndarray:
+    """A finite float vector of exactly `size` entries, each within +-`max_abs`, else InputError naming the problem.
+
+    The magnitude bound refuses values that are finite but absurd: a target or state of 1e300 overflows
+    the NLP's squared costs, and the solver would then fail at every sample until the next good value.
+    """
     if isinstance(values, (str, bytes)):  # numpy would read "1.5" as the number 1.5
         raise InputError(f"{name}: data is not a sequence of numbers (got a {type(values).__name__})")
     try:
@@ -100,6 +104,8 @@ def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int) 
         raise InputError(f"{name}: expected {size} values, got {arr.size}")
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name}: contains NaN or infinite values")
+    if np.any(np.abs(arr) > max_abs):
+        raise InputError(f"{name}: values must be within +-{max_abs:g}, got {arr.tolist()}")
     return arr
 
 

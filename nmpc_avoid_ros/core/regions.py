@@ -31,7 +31,7 @@ MAX_COORDINATE = 1e6
 def _finite(name: str, values: Sequence[float]) -> tuple[float, ...]:
     try:
         out = tuple(float(v) for v in values)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
         raise RegionError(f"{name} must be numbers, got {values!r}") from None
     if not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE for v in out):
         raise RegionError(f"{name} must be finite and within +-{MAX_COORDINATE:g}, got {out}")
@@ -85,8 +85,12 @@ class Polygon:
     frame: str = "state"
 
     def __post_init__(self) -> None:
+        try:
+            raw = list(self.vertices)
+        except TypeError:
+            raise RegionError(f"polygon vertices must be a sequence of 2-d points, got {self.vertices!r}") from None
         verts = []
-        for v in self.vertices:
+        for v in raw:
             pt = _finite("polygon vertex", v)
             if len(pt) != 2:
                 raise RegionError(f"polygon vertices must be 2-d points, got {v!r}")
@@ -110,6 +114,11 @@ class Polygon:
             raise RegionError("polygon has repeated consecutive vertices")
         if not (np.all(cross > 1e-12) or np.all(cross < -1e-12)):
             raise RegionError("polygon must be convex with vertices in order (split a non-convex one)")
+        # every turn has the same sign, but a star (pentagram) or a doubly wound outline also does:
+        # a simple convex polygon turns exactly once in total
+        turning = np.sum(np.arctan2(cross, np.einsum("ij,ij->i", edges, np.roll(edges, -1, axis=0))))
+        if abs(turning) > 3 * math.pi:
+            raise RegionError("polygon must be simple: its outline crosses itself or winds more than once")
         orientation = 1.0 if cross[0] > 0 else -1.0
         # outward normal of a counter-clockwise edge (ex, ey) is (ey, -ex)
         normals = orientation * np.column_stack([edges[:, 1], -edges[:, 0]]) / lengths[:, None]
@@ -132,8 +141,10 @@ class Polygon:
 
 def rotated_box(center: Sequence[float], size: Sequence[float], yaw: float = 0.0, frame: str = "state") -> Polygon:
     """Rectangle of full side lengths `size` centred at `center`, rotated by `yaw` rad."""
-    cx, cy = _finite("box centre", center)
-    sx, sy = _finite("box size", size)
+    centre, sides, (yaw,) = _finite("box centre", center), _finite("box size", size), _finite("box yaw", (yaw,))
+    if len(centre) != 2 or len(sides) != 2:
+        raise RegionError(f"a box needs a 2-d centre and 2 sides, got {centre} and {sides}")
+    (cx, cy), (sx, sy) = centre, sides
     if min(sx, sy) <= 1e-9:
         raise RegionError(f"box sides must be positive, got {(sx, sy)}")
     c, s = math.cos(yaw), math.sin(yaw)
@@ -187,6 +198,12 @@ class SlotLayout:
     max_polygons: int = 4
     max_polygon_vertices: int = 8
 
+    def __post_init__(self) -> None:
+        for name, least in (("max_ellipses", 0), ("max_polygons", 0), ("max_polygon_vertices", 3)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < least:
+                raise RegionError(f"{name} must be an integer >= {least}, got {value!r}")
+
     @property
     def size(self) -> int:
         return self.max_ellipses * ELLIPSE_SLOT_SIZE + self.max_polygons * polygon_slot_size(self.max_polygon_vertices)
@@ -197,6 +214,8 @@ class SlotLayout:
         Raises RegionError when there are more regions of a kind than slots, or a region uses the
         output frame on a model whose output has fewer than two coordinates.
         """
+        if not isinstance(regions, Sequence) or isinstance(regions, str):
+            raise RegionError(f"regions must be a sequence of Ellipse/Polygon, got {type(regions).__name__}")
         ellipses = [r for r in regions if isinstance(r, Ellipse)]
         polygons = [r for r in regions if isinstance(r, Polygon)]
         if len(ellipses) + len(polygons) != len(regions):

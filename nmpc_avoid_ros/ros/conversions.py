@@ -22,7 +22,8 @@ _NS_PER_S = 1_000_000_000
 def array_to_vector(msg: Float64MultiArray, size: int, name: str) -> np.ndarray:
     """Validated copy of `msg.data` as a float array of shape [size].
 
-    Raises InputError naming `name` when the length differs from `size` or a value is NaN/inf,
+    Raises InputError naming `name` when the length differs from `size` or a value is NaN/inf or
+    beyond +-1e12 (finite but absurd, it would overflow the NLP's costs),
     so the caller can log it and keep the last good value.
     """
     data = getattr(msg, "data", None)
@@ -40,7 +41,7 @@ def vector_to_array(values: Sequence[float] | np.ndarray, label: str | None = No
     """
     try:
         arr = np.asarray(values, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
         raise InputError("vector_to_array: values are not numbers") from None
     if arr.ndim > 1:
         raise InputError(f"vector_to_array: expected a 1-d vector, got shape {arr.shape}")
