@@ -16,7 +16,6 @@ from nmpc_avoid_ros.core.errors import NmpcError
 
 T = TypeVar("T")
 
-#: reproducible (derandomized, no example database) and modest; `examples` per test
 def fuzz_settings(examples: int) -> settings:
     """Hypothesis settings of the fuzz tests: `examples` derandomized examples, no deadline."""
     return settings(max_examples=examples, deadline=None, derandomize=True, database=None,
