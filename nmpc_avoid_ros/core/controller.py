@@ -28,6 +28,12 @@ SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
 BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
 
 
+#: budget of a cold start (no previous plan) of the fast paths: at least this many iterations,
+#: and this multiple of max_solve_time
+COLD_START_ITERATIONS = 200
+COLD_START_TIME_FACTOR = 10.0
+
+
 def make_nlp(settings: ControllerSettings, model: Model | None = None) -> NlpBase:
     """The formulation of the settings' solver path: multiple shooting (ipopt) or stage-wise."""
     if settings.solver == "ipopt":
@@ -119,6 +125,17 @@ class NmpcController:
         self.settings = settings or ControllerSettings()
         self.nlp = make_nlp(self.settings, model)
         self.model = self.nlp.model
+        # A cold start (no previous plan) begins from a straight line that may cross obstacles,
+        # far from any solution: there the fast paths' line searches stall (measured: SQP beside
+        # an ellipse; FATROP on the mobile robot for N >= 10) and a real-time budget is too small.
+        # The reference IPOPT formulation, with a cold-start budget, solves it; the fast path
+        # continues from its plan.
+        self.cold_nlp: NlpBase | None = None
+        if self.settings.solver != "ipopt":
+            cold = self.settings.replace(solver="ipopt", max_iterations=max(self.settings.max_iterations,
+                                                                            COLD_START_ITERATIONS),
+                                         max_solve_time=self.settings.max_solve_time * COLD_START_TIME_FACTOR)
+            self.cold_nlp = TrackingNlp(cold, self.model)
         self.nlp_builds = 1
         self._regions: tuple[Region, ...] = ()
         self._slots = np.zeros(self.nlp.slot_layout.size)
@@ -183,10 +200,12 @@ class NmpcController:
             x, y_t, self._slots, kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
             input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
         )
-        w0, lam_x0, lam_g0 = self._initial_guess(x, y_t)
-        w0 = self.nlp.fill_slacks(w0, par)
+        nlp = self.cold_nlp if self.cold_nlp is not None and self._plan is None and self._pending is None \
+            else self.nlp
+        w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
+        w0 = nlp.fill_slacks(w0, par)
         start = time.perf_counter()
-        w, lam_x, lam_g, stats = self.nlp.solve(w0, par, lam_x0, lam_g0)
+        w, lam_x, lam_g, stats = nlp.solve(w0, par, lam_x0, lam_g0)
         solve_time = time.perf_counter() - start
         solver_status = str(stats.get("return_status", "unknown"))
         iterations = int(stats.get("iter_count", -1))
@@ -195,30 +214,32 @@ class NmpcController:
         finite = bool(np.all(np.isfinite(w)))
         # an unconverged iterate (budget cut, or a stalled SQP line search) is a valid plan when
         # it is feasible: the paper's recursive feasibility needs feasibility, not optimality
-        usable = finite and (solved or self.nlp.violation(w, par) <= s.feasibility_tolerance)
+        usable = finite and (solved or nlp.violation(w, par) <= s.feasibility_tolerance)
+        if nlp is not self.nlp:  # a cold start: the fast path's own multipliers start from zero
+            lam_x, lam_g = np.zeros(self.nlp.layout.n_w), np.zeros(self.nlp.lbg.size)
         if usable:
             self._pending = None
-            plan = self._accept(x, w, par, lam_x, lam_g)
+            plan = self._accept(x, w, par, lam_x, lam_g, nlp)
             status = "ok" if solved else "truncated"
             return self._result(plan, x, 0, status, solver_status, iterations, solve_time, budget_cut)
-        self._pending = (w, lam_x, lam_g) if finite and budget_cut else None
+        self._pending = (w, lam_x, lam_g) if finite and budget_cut and nlp is self.nlp else None
         return self._fallback(x, solver_status, iterations, solve_time, budget_cut)
 
-    def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray) -> _Plan:
-        layout = self.nlp.layout
-        U, X, y_a, _ = layout.split_w(w)
-        x_a, u_a = (v.copy() for v in self.nlp.steady(w))
-        costs = tuple(float(c[0]) for c in self.nlp.terms(w, par))
+    def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray,
+                nlp: NlpBase) -> _Plan:
+        U, X, y_a, _ = nlp.layout.split_w(w)
+        x_a, u_a = (v.copy() for v in nlp.steady(w))
+        costs = tuple(float(c[0]) for c in nlp.terms(w, par))
         self._plan = _Plan(w, U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
         return self._plan
 
-    def _initial_guess(self, x: np.ndarray, y_t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _initial_guess(self, x: np.ndarray, y_t: np.ndarray, nlp: NlpBase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Shifted previous plan (u(1..N-1), u_a; x(2..N), x_a), else a straight line to y_t.
 
         After a budget-cut sample whose iterate could not be applied, that iterate (shifted by
         one sample) is the guess: the optimisation goes on where the budget stopped it.
         """
-        layout = self.nlp.layout
+        layout = nlp.layout
         N = layout.horizon
         if self._pending is not None:
             w, lam_x, lam_g = self._pending
@@ -238,7 +259,7 @@ class NmpcController:
             X = (1 - ramp) * x + ramp * x_a
             U = np.tile(u_a, (N, 1))
             rest = None if layout.closed_form else np.concatenate([x_a, u_a])
-            return layout.join_w(U, X, y_a, rest, x0=x), np.zeros(layout.n_w), np.zeros(self.nlp.lbg.size)
+            return layout.join_w(U, X, y_a, rest, x0=x), np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
         shift = plan.age + 1
         U = np.vstack([plan.inputs[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
         X = np.vstack([plan.states[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])

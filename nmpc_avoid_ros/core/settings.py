@@ -281,7 +281,8 @@ SETTING_DOCS: dict[str, str] = {
     "input_weights": "diagonal of R in the stage cost |u - u_a|_R^2 (m values >= 0)",
     "kappa": "offset cost weight: V_o = kappa |y_a - y_t|^2",
     "mu": "avoidance weight: V_a = mu (F(x_a) + sum_j F(x(j))); 0 disables avoidance",
-    "max_iterations": "solver iteration budget per sample",
+    "max_iterations": "solver iteration budget per sample (fast paths: a cold start without a plan is solved "
+                      "by IPOPT with >= 200 iterations and 10x the time budget)",
     "max_solve_time": "solver wall-time budget per sample, s",
     "tolerance": "solver convergence tolerance",
     "feasibility_tolerance": "a budget-cut iterate is applied only if its constraint violation is below this",

@@ -184,7 +184,8 @@ class StagewiseNlp(NlpBase):
         stages = {"nx": [n + p] * (N + 1),
                   "nu": [int(stage_start[k + 1] - stage_start[k] - n - p) for k in range(N)] + [0],
                   "ng": [int(g_start[k + 1] - g_start[k]) - (n + p if k < N else 0) for k in range(N + 1)]}
-        self.solver = make_solver({"x": w, "p": par, "f": cost, "g": g}, s, self.lbg == self.ubg, stages)
+        problem = {"x": w, "p": par, "f": cost, "g": g}
+        self.solver, self.solver_info = make_solver(problem, s, self.lbg == self.ubg, stages)
         x_a0, u_a0 = steady(Y[0])
         self.terms = Buffered(ca.Function("terms", [w, par], [v_offset, v_avoid, tracking]))
         self.steady = Buffered(ca.Function("steady", [w], [x_a0, u_a0]))

@@ -1,0 +1,147 @@
+"""The fast solver paths: same closed loop as the IPOPT reference, compiled-code cache, budget.
+
+Speed itself is measured by the benchmark (bench/, BENCHMARKS.md), not here.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from nmpc_avoid_ros.core.closed_loop import SETTLING_TOLERANCE, max_abs_product, run_closed_loop, settling_step
+from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.errors import ConfigError
+from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.settings import SOLVERS, ControllerSettings
+from nmpc_avoid_ros.core.stagewise import StagewiseNlp
+
+FAST = [s for s in SOLVERS if s != "ipopt"]
+#: the paper problem exactly: its two keep-in regions, no obstacle slots
+PAPER = ControllerSettings(max_ellipses=0, max_polygons=0)
+
+
+@functools.cache
+def paper_loop(solver: str, mu: float, plant: str, max_iterations: int = 200):
+    controller = NmpcController(PAPER.replace(solver=solver, mu=mu, max_iterations=max_iterations))
+    return run_closed_loop(controller, [-5.0, 0.0], [5.0], 50, plant), controller
+
+
+@pytest.mark.parametrize("solver", FAST)
+@pytest.mark.parametrize("mu,plant", [(1e8, "euler"), (1e8, "continuous"), (0.0, "euler")])
+def test_fast_path_reproduces_the_ipopt_closed_loop(solver, mu, plant):
+    ref, _ = paper_loop("ipopt", mu, plant)
+    run, controller = paper_loop(solver, mu, plant)
+    settle_ref = settling_step(ref.x[:, 0], 5.0, SETTLING_TOLERANCE)
+    settle = settling_step(run.x[:, 0], 5.0, SETTLING_TOLERANCE)
+    assert settle is not None and abs(settle - settle_ref) <= 2
+    if mu > 0:
+        assert max_abs_product(run.x) <= 2.005 if plant == "euler" else max_abs_product(run.x) <= 2.0
+    else:
+        assert max_abs_product(run.x) == pytest.approx(max_abs_product(ref.x), rel=1e-3)
+    assert not any(s.startswith("fallback") for s in run.status)
+    assert controller.nlp_builds == 1
+
+
+@pytest.mark.parametrize("solver", FAST)
+def test_first_sample_matches_the_reference_optimum(solver):
+    """Same optimum as the multiple-shooting NLP: u(0), y_a and the predicted states agree."""
+    ref = NmpcController(PAPER).step([-5.0, 0.0], [5.0])
+    res = NmpcController(PAPER.replace(solver=solver)).step([-5.0, 0.0], [5.0])
+    assert res.status == "ok"
+    np.testing.assert_allclose(res.u, ref.u, atol=1e-4)
+    np.testing.assert_allclose(res.y_a, ref.y_a, atol=1e-4)
+    np.testing.assert_allclose(res.states, ref.states, atol=1e-4)
+    assert res.avoidance_cost == pytest.approx(ref.avoidance_cost, rel=1e-3, abs=1e-6)
+
+
+def test_obstacle_changes_never_rebuild_the_fast_path():
+    controller = NmpcController(ControllerSettings(solver="sqp", max_ellipses=2, max_polygons=0))
+    solver = controller.nlp.solver
+    x = np.array([-5.0, 0.0])
+    for k in range(6):
+        regions = [Ellipse((-3.0 + 0.3 * k, 0.5), (0.4, 0.3), 0.1 * k)]
+        res = controller.step(x, [5.0], regions)
+        assert res.status in ("ok", "truncated")
+        x = res.states[1]
+    assert controller.nlp_builds == 1 and controller.nlp.solver is solver
+
+
+def test_compiled_solver_is_cached_by_structure(tmp_path):
+    settings = PAPER.replace(solver="sqp", codegen=True, cache_dir=str(tmp_path))
+    first = NmpcController(settings)
+    assert first.nlp.solver_info["cache_hit"] is False
+    libraries = sorted(tmp_path.glob("*.so"))
+    assert len(libraries) == 2  # the SQP and its cold-start FATROP solver
+    stamps = [lib.stat().st_mtime_ns for lib in libraries]
+    # a second start with the same structure reuses the library; run-time parameters do not matter
+    second = NmpcController(settings.replace(mu=0.0, kappa=10.0))
+    assert second.nlp.solver_info["cache_hit"] is True
+    assert sorted(tmp_path.glob("*.so")) == libraries
+    assert [lib.stat().st_mtime_ns for lib in libraries] == stamps
+    # the compiled and the interpreted solver give the same plan
+    plain = NmpcController(PAPER.replace(solver="sqp"))
+    a, b = first.step([-5.0, 0.0], [5.0]), plain.step([-5.0, 0.0], [5.0])
+    np.testing.assert_allclose(a.states, b.states, atol=1e-9)
+    # another structure gets its own library
+    NmpcController(settings.replace(horizon=6))
+    assert len(list(tmp_path.glob("*.so"))) == 4
+    assert not list(tmp_path.glob("tmp*")), "no half-written build left behind"
+
+
+def test_codegen_without_a_compiler_says_so(tmp_path, monkeypatch):
+    monkeypatch.setenv("CC", "no-such-compiler-here")
+    with pytest.raises(ConfigError, match="C compiler"):
+        NmpcController(PAPER.replace(solver="sqp", codegen=True, cache_dir=str(tmp_path)))
+
+
+@pytest.mark.parametrize("plant", ["euler", "continuous"])
+def test_real_time_budget_cuts_and_continues(plant):
+    """A fixed budget of 5 SQP iterations per sample: cut samples are flagged and continued from
+    their iterate, every sample has a command, and the closed loop keeps the reference's quality."""
+    ref, _ = paper_loop("ipopt", 1e8, plant)
+    controller = NmpcController(PAPER.replace(solver="sqp", mu=1e8, max_iterations=5))
+    cut = []
+    run = run_closed_loop(controller, [-5.0, 0.0], [5.0], 50, plant,
+                          on_step=lambda k, res: cut.append(res.budget_exhausted))
+    assert any(cut), "a budget of 5 iterations must cut some samples"
+    assert max(run.iterations[1:]) <= 5  # the cold start (sample 0) has its own budget
+    assert len(run.u) == 50 and np.all(np.isfinite(run.u))
+    settle = settling_step(run.x[:, 0], 5.0, SETTLING_TOLERANCE)
+    assert settle is not None and abs(settle - settling_step(ref.x[:, 0], 5.0, SETTLING_TOLERANCE)) <= 2
+    assert max_abs_product(run.x) <= 2.005
+
+
+def test_budget_flag_reaches_the_step_result():
+    controller = NmpcController(PAPER.replace(solver="sqp", max_iterations=1))
+    first = controller.step([-5.0, 0.0], [5.0])  # cold start: its own, larger budget
+    assert first.status == "ok" and not first.budget_exhausted
+    res = controller.step(first.states[1], [-3.0])  # a new target cannot be reached in one iteration
+    assert res.iterations == 1 and res.budget_exhausted
+    assert res.status in ("truncated", "fallback_shift")
+
+
+def test_stagewise_needs_the_closed_form_steady_state():
+    with pytest.raises(ConfigError, match="closed-form"):
+        NmpcController(PAPER.replace(solver="fatrop", use_closed_form_steady_state=False))
+
+
+def test_stagewise_layout_round_trip_and_dual_shift():
+    nlp = StagewiseNlp(PAPER.replace(solver="sqp", horizon=6))
+    layout = nlp.layout
+    rng = np.random.default_rng(0)
+    U, X, y_a = rng.normal(size=(6, 1)), rng.normal(size=(6, 2)), rng.normal(size=1)
+    w = layout.join_w(U, X, y_a, None, x0=np.array([1.0, 2.0]))
+    U2, X2, y2, _ = layout.split_w(w)
+    np.testing.assert_array_equal(U2, U)
+    np.testing.assert_array_equal(X2, X)
+    np.testing.assert_array_equal(y2, y_a)
+    lam_x = np.arange(layout.n_w, dtype=float)
+    lam_g = np.arange(nlp.lbg.size, dtype=float)
+    sx, sg = nlp.shift_duals(lam_x, lam_g, 1)
+    blocks_x, blocks_g = nlp._x_blocks, nlp._g_blocks
+    np.testing.assert_array_equal(sx[blocks_x[1]], lam_x[blocks_x[2]])
+    np.testing.assert_array_equal(sg[blocks_g[3]], lam_g[blocks_g[4]])
+    np.testing.assert_array_equal(sx[blocks_x[5]], lam_x[blocks_x[5]])  # the last uniform stage stays
+    assert sx[0] == lam_x[0]  # stage 0 keeps its own
