@@ -60,8 +60,8 @@ import casadi as ca
 import numpy as np
 
 from ..bag.analysis import RecordedRun, run_metrics
-from ..core.closed_loop import PLANTS, SETTLING_TOLERANCE, run_closed_loop, settling_step
-from ..core.controller import SOLVED, NmpcController
+from ..core.closed_loop import PLANTS, SETTLING_TOLERANCE, ClosedLoopRun, run_closed_loop, settling_step
+from ..core.controller import SOLVED, NmpcController, StepResult
 from ..core.errors import ConfigError, NmpcError
 from ..core.expressions import parse_keep_in
 from ..core.models import Model, make_model
@@ -375,16 +375,50 @@ def _vec(values: Iterable[float], digits: int = 9) -> list[float]:
     return [round(float(v), digits) for v in values]
 
 
+def closed_loop(controller: NmpcController, spec: dict[str, Any], regions: Sequence[Region]
+                ) -> tuple[ClosedLoopRun, str | None]:
+    """run_closed_loop of the scenario; if it stops early (e.g. the plant state became non-finite and
+    the controller refused it), the samples completed before, and why it stopped."""
+    done: list[StepResult] = []
+    try:
+        run = run_closed_loop(controller, spec["x0"], spec["target"], spec["steps"], spec["plant"],
+                              regions=lambda k: regions if k == 0 else None, on_step=lambda k, res: done.append(res))
+        return run, None
+    except (NmpcError, ArithmeticError, RuntimeError, ValueError) as exc:
+        error = f"{type(exc).__name__} at sample {len(done)}: {exc}"
+    if len(done) < 2:
+        raise RuntimeError(f"closed loop stopped before two samples: {error}")
+    used = done[:-1]  # the states each sample solved on: x(0..K); the last result closes x(K)
+    x = np.array([res.states[0] for res in done])
+    return ClosedLoopRun(
+        x, np.array([r.u for r in used]), np.array([r.y_a for r in used]),
+        np.tile(np.asarray(spec["target"], float), (len(used), 1)), np.array([r.solve_time for r in used]),
+        np.array([r.iterations for r in used]), [r.status for r in used], [r.solver_status for r in used],
+        np.array([(r.offset_cost, r.avoidance_cost, r.tracking_cost) for r in used]),
+        controller.settings.sample_time, {"plant": spec["plant"]}), error
+
+
 def run_scenario(spec: dict[str, Any]) -> dict[str, Any]:
-    """Run one scenario's closed loop and score it; the record (with its 'trace') is JSON-ready."""
+    """Run one scenario's closed loop and score it; the record (with its 'trace') is JSON-ready.
+
+    Never raises: an unexpected error gives a record with 'crashed': the message.
+    """
+    try:
+        return _run_scenario(spec)
+    except Exception as exc:  # noqa: BLE001 - one bad scenario must not end the campaign
+        return {"id": spec["id"], "family": spec["family"], "index": spec["index"],
+                "spec": {k: spec[k] for k in ("x0", "target", "ellipses", "steps", "plant")},
+                "crashed": f"{type(exc).__name__}: {exc}"}
+
+
+def _run_scenario(spec: dict[str, Any]) -> dict[str, Any]:
     start = time.perf_counter()
     controller, reach, probe = _tools(spec["config"])
     settings, model = controller.settings, controller.model
     controller.reset()
     regions = [Ellipse(tuple(e["center"]), tuple(e["semi_axes"]), e["yaw"], e["frame"]) for e in spec["ellipses"]]
     y_t = np.asarray(spec["target"], float)
-    run = run_closed_loop(controller, spec["x0"], y_t, spec["steps"], spec["plant"],
-                          regions=lambda k: regions if k == 0 else None)
+    run, stopped = closed_loop(controller, spec, regions)
     K = len(run.u)
     us = np.vstack([run.u, run.u[-1:]])
     y = np.array([np.asarray(model.output(x, u)).ravel() for x, u in zip(run.x, us)])
@@ -432,7 +466,7 @@ def run_scenario(spec: dict[str, Any]) -> dict[str, Any]:
     record = {
         "id": spec["id"], "family": spec["family"], "index": spec["index"],
         "spec": {k: spec[k] for k in ("x0", "target", "ellipses", "steps", "plant")},
-        "n_ellipses": len(regions),
+        "n_ellipses": len(regions), "stopped_early": stopped,
         "reachable": reachable, "y_star": _vec(y_star), "y_admissible": _vec(y_free),
         "target_covered": blocked_target,
         "final_state": _vec(run.x[-1]), "final_y": _vec(y[-1]),
@@ -467,11 +501,14 @@ def run_scenario(spec: dict[str, Any]) -> dict[str, Any]:
 def classify(record: dict[str, Any]) -> dict[str, Any]:
     """Set the derived flags converged / near / near_target / near_admissible / stop_short from the
     record's raw measures (so that a rebuilt campaign.json always uses the current definitions)."""
-    record["converged"] = record["settling_step"] is not None
+    if record.get("crashed"):
+        return record
+    record["converged"] = record["settling_step"] is not None and not record.get("stopped_early")
     record["near"] = bool(record["error_to_best"] < NEAR_TOLERANCE)
     record["near_target"] = bool(record["error_to_target"] < NEAR_TOLERANCE)
-    record["near_admissible"] = bool(record["error_to_admissible"] < NEAR_TOLERANCE)
-    record["stop_short"] = bool(record["at_rest"] and not record["converged"])
+    err = record["error_to_admissible"]
+    record["near_admissible"] = bool(err is not None and err < NEAR_TOLERANCE)  # NaN/None: no admissible point
+    record["stop_short"] = bool(record["at_rest"] and not record["converged"] and not record.get("stopped_early"))
     return record
 
 
@@ -489,19 +526,25 @@ def _stats(values: Sequence[float]) -> dict[str, float | None]:
 
 def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Summary of one family's records (shares are fractions in [0, 1]; distances in output units)."""
+    crashed = [r for r in records if r.get("crashed")]
+    records = [r for r in records if not r.get("crashed")]
     n = len(records)
     if not n:
-        return {"scenarios": 0}
+        return {"scenarios": 0, "crashed": len(crashed)}
+    diverged = [r for r in records if r.get("stopped_early")]
+    finished = [r for r in records if not r.get("stopped_early")] or records
     reach = [r for r in records if r["reachable"]]
     unreach = [r for r in records if not r["reachable"]]
     short = [r for r in records if r["stop_short"]]
     pairs = sum(r["rf_pairs"] for r in records)
-    worst = max(records, key=lambda r: r["max_penetration"])
+    worst = max(finished, key=lambda r: r["max_penetration"])
     causes: dict[str, int] = {}
     for r in short:
         causes[r["stop_short_cause"]] = causes.get(r["stop_short_cause"], 0) + 1
     return {
         "scenarios": n,
+        "crashed": len(crashed),
+        "stopped_early": len(diverged),
         "reachable_targets": len(reach),
         "with_ellipses": sum(r["n_ellipses"] > 0 for r in records),
         "target_covered_by_region": sum(r["target_covered"] for r in records),
@@ -515,8 +558,9 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "not_at_rest": sum(not r["at_rest"] for r in records),
         "max_penetration": float(worst["max_penetration"]),
         "max_penetration_scenario": worst["id"] if worst["max_penetration"] > 0 else None,
-        "max_penetration_keep_in": float(max(r["max_penetration_keep_in"] for r in records)),
-        "max_penetration_obstacles": float(max(r["max_penetration_obstacles"] for r in records)),
+        "max_penetration_keep_in": float(max(r["max_penetration_keep_in"] for r in finished)),
+        "max_penetration_obstacles": float(max(r["max_penetration_obstacles"] for r in finished)),
+        "max_penetration_scope": "runs that did not stop early",
         "runs_with_penetration_over_1e-3": sum(r["max_penetration"] > 1e-3 for r in records),
         "samples": sum(r["samples"] for r in records),
         "solver_failures": sum(r["solver_failures"] for r in records),
@@ -537,12 +581,15 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "stop_short_causes": causes,
         "stop_short_distance": _stats([r["stop_short_distance"] for r in short]),
         "stop_short_beyond_admissible": _stats([r["stop_short_beyond_admissible"] for r in short
-                                                if math.isfinite(r["stop_short_beyond_admissible"])]),
+                                                if r["stop_short_beyond_admissible"] is not None
+                                                and math.isfinite(r["stop_short_beyond_admissible"])]),
         "solve_ms_max": float(max(r["solve_ms"]["max"] for r in records)),
         "solve_ms_median_of_medians": float(np.median([r["solve_ms"]["median"] for r in records])),
         "budget_exhausted": sum(r["budget_exhausted"] for r in records),
         "examples": {
             "stop_short": [r["id"] for r in short][:5],
+            "stopped_early": [f"{r['id']}: {r['stopped_early']}" for r in diverged][:5],
+            "crashed": [f"{r['id']}: {r['crashed']}" for r in crashed][:5],
             "not_at_rest": [r["id"] for r in records if not r["at_rest"]][:5],
             "fallback": [r["id"] for r in records if r["fallbacks"]][:5],
             "first_solve_failed": [r["id"] for r in records if not r["initial_feasible"]][:5],
@@ -621,18 +668,30 @@ def build_output(out: Path, specs: Sequence[dict[str, Any]], meta: dict[str, Any
     """campaign.json (records without traces, summary per family) and plots, from the JSONL."""
     done = read_jsonl(out / JSONL_NAME)
     records = [classify(done[s["id"]]) for s in specs if s["id"] in done]
+    plotted = [r for r in records if not r.get("crashed")]
     summary = {fam: summarize([r for r in records if r["family"] == fam])
                for fam in dict.fromkeys(s["family"] for s in specs)}
     result = {"meta": meta, "definitions": DEFINITIONS, "summary": summary,
               "scenarios": [{k: v for k, v in r.items() if k != "trace"} for r in records]}
-    (out / JSON_NAME).write_text(json.dumps(result, indent=1))
-    (out / "summary.json").write_text(json.dumps({"meta": meta, "definitions": DEFINITIONS, "summary": summary},
-                                                 indent=2))
-    if plots and records:
+    (out / JSON_NAME).write_text(json.dumps(_strict(result), indent=1, allow_nan=False))
+    head = {"meta": meta, "definitions": DEFINITIONS, "summary": summary}
+    (out / "summary.json").write_text(json.dumps(_strict(head), indent=2, allow_nan=False))
+    if plots and plotted:
         from .campaign_plots import write_plots
 
-        write_plots(out, records, {s["family"]: s["config"] for s in specs})
+        write_plots(out, plotted, {s["family"]: s["config"] for s in specs})
     return result
+
+
+def _strict(value: Any) -> Any:
+    """The value with NaN/inf floats replaced by None (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_strict(v) for v in value]
+    return value
 
 
 DEFINITIONS = {
@@ -647,6 +706,8 @@ DEFINITIONS = {
     "penetration": "max over sampled states of g (keep-in: expression value, e.g. |x1 x2|-2; ellipse: 1 - r^2), 0 "
                    "if never inside",
     "solver_failure": "sample whose IPOPT status is not Solve_Succeeded / Solved_To_Acceptable_Level",
+    "stopped_early": "the closed loop ended before its last sample (e.g. the plant state became non-finite); such "
+                     "runs count as not converged and are left out of max_penetration",
     "fallback": "sample that applied the controller's fallback (shift, steady or safe input)",
     "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
                           "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",
@@ -665,7 +726,8 @@ def format_summary(summary: dict[str, Any]) -> str:
         ss = s["stop_short_distance"]
         lines += [
             f"{fam}: {s['scenarios']} scenarios ({s['reachable_targets']} reachable targets, "
-            f"{s['with_ellipses']} with ellipses, {s['target_covered_by_region']} with y* covered by a region)",
+            f"{s['with_ellipses']} with ellipses, {s['target_covered_by_region']} with y* covered by a region; "
+            f"stopped early {s['stopped_early']}, crashed {s['crashed']})",
             f"  converged {pct(s['share_converged'])}  near y_t/y* {pct(s['share_near'])} "
             f"(reachable {pct(s['share_near_target_reachable'])}, unreachable {pct(s['share_near_best_unreachable'])})"
             f"  near y~ {pct(s['share_near_admissible'])}  not at rest {s['not_at_rest']}",
