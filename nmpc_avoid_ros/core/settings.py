@@ -104,12 +104,13 @@ class ControllerSettings:
         _positive("max_solve_time", self.max_solve_time)
         _positive("tolerance", self.tolerance)
         _positive("feasibility_tolerance", self.feasibility_tolerance)
-        minimum = {"horizon": 1, "max_iterations": 1, "max_ellipses": 0, "max_polygons": 0,
-                   "max_polygon_vertices": 3}
-        for name, least in minimum.items():
+        # upper limits keep a typo (horizon: 1e30) from hanging the NLP build
+        ranges = {"horizon": (1, 2000), "max_iterations": (1, 100000), "max_ellipses": (0, 256),
+                  "max_polygons": (0, 256), "max_polygon_vertices": (3, 64)}
+        for name, (least, most) in ranges.items():
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < least:
-                raise ConfigError(f"{name} must be an integer >= {least}, got {value!r}")
+            if not isinstance(value, int) or isinstance(value, bool) or not least <= value <= most:
+                raise ConfigError(f"{name} must be an integer in [{least}, {most}], got {value!r}")
         if not isinstance(self.use_closed_form_steady_state, bool):
             raise ConfigError(f"use_closed_form_steady_state must be true or false, got "
                               f"{self.use_closed_form_steady_state!r}")
