@@ -145,3 +145,16 @@ def test_stagewise_layout_round_trip_and_dual_shift():
     np.testing.assert_array_equal(sg[blocks_g[3]], lam_g[blocks_g[4]])
     np.testing.assert_array_equal(sx[blocks_x[5]], lam_x[blocks_x[5]])  # the last uniform stage stays
     assert sx[0] == lam_x[0]  # stage 0 keeps its own
+
+
+def test_simulate_picks_a_solver_path_by_name(capsys, tmp_path):
+    from nmpc_avoid_ros.tools.simulate import main
+
+    assert main(["--solver", "list"]) == 0
+    listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
+    assert listed == list(SOLVERS)
+    out = tmp_path / "run.json"
+    assert main(["--solver", "fatrop", "--steps", "12", "--json", str(out)]) == 0
+    assert "solver=fatrop" in capsys.readouterr().out
+    assert main(["--solver", "no_such_path"]) == 2
+    assert "solver must be one of" in capsys.readouterr().err
