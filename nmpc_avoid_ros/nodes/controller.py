@@ -3,8 +3,19 @@
     ros2 run nmpc_avoid_ros controller --ros-args --params-file config/van_der_pol.yaml
 
 Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the
-latest state. Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message is
-solved once, as it arrives, so the ROS loop reproduces the offline loop exactly.
+latest state. A sample that finds no new state since the last solve (lost or late messages)
+solves that state again and is counted in `missed_samples`.
+Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message is solved once,
+as it arrives, so the ROS loop reproduces the offline loop exactly.
+
+Diagnostics (one DiagnosticArray per sample on /diagnostics, values as strings): the counters
+`samples`, `fallbacks`, `rejected_inputs`, `deadline_overruns`, `stale` (samples without a usable
+state), `states_received` (good states), `missed_samples` (timer mode: samples with no new state
+since the last solve), `stale_episodes`; `state_age_ms` (age of
+the state this sample used), `max_state_gap_ms` (longest interval between two good states),
+`stale_for_s` (how long the current stale episode lasts) and `last_stale_s` (length of the last
+one that ended); with a solve also `status`, `solver_status`, `iterations`, `solve_time_ms`,
+`step_latency_ms`, `budget_exhausted`, the costs, `y_a` and `state`.
 """
 
 from __future__ import annotations
@@ -88,7 +99,13 @@ class ControllerNode(Node):
         self.started = self.now()
         self.last_result: StepResult | None = None
         self.last_command = np.zeros(self.m)
-        self.counts = {"samples": 0, "fallbacks": 0, "rejected_inputs": 0, "deadline_overruns": 0, "stale": 0}
+        self.counts = {"samples": 0, "fallbacks": 0, "rejected_inputs": 0, "deadline_overruns": 0, "stale": 0,
+                       "states_received": 0, "missed_samples": 0, "stale_episodes": 0}
+        self.fresh_state = False  # a good state arrived since the last solve
+        self.max_state_gap = 0.0  # s, longest interval between two good states
+        self.stale_since: float | None = None  # node-clock time the current stale episode began
+        self.last_stale = 0.0  # s, length of the last stale episode that ended
+        self.state_age = math.nan  # s, age of the state at the start of the last sample
 
         self.pub_command = self.create_publisher(Float64MultiArray, "command", STREAM_QOS)
         self.pub_prediction = self.create_publisher(Path, "~/prediction", STREAM_QOS)
@@ -120,8 +137,13 @@ class ControllerNode(Node):
         except InputError as exc:
             self.reject("state", str(exc))
             return
-        self.state_time = self.now()
+        now = self.now()
+        if self.state_time is not None:
+            self.max_state_gap = max(self.max_state_gap, now - self.state_time)
+        self.state_time = now
         self.state_solved = False
+        self.fresh_state = True
+        self.counts["states_received"] += 1
         if self.lockstep:
             self.on_sample()
 
@@ -136,9 +158,13 @@ class ControllerNode(Node):
             self.on_sample()
 
     def on_obstacles(self, msg: MarkerArray) -> None:
+        revision = self.store.revision
         report = self.store.apply(msg, self.now())
         for ns, marker_id, reason in report.rejected:
             self.reject(f"marker {ns}/{marker_id}", reason)
+        if self.store.revision != revision:
+            self.get_logger().info(f"obstacles received: {len(self.store)} region(s) stored",
+                                   throttle_duration_sec=self.throttle)
 
     def on_set_parameters(self, params: list) -> SetParametersResult:
         """Validate the whole batch; apply it only if every value is valid."""
@@ -186,9 +212,19 @@ class ControllerNode(Node):
                     self.state_timeout else DiagnosticStatus.WARN
                 self.publish_diagnostics(level, f"idle: waiting for {waiting}", None, 0.0)
             return
-        if not self.lockstep and now - self.state_time > self.state_timeout:
+        self.state_age = now - self.state_time
+        if not self.lockstep and self.state_age > self.state_timeout:
+            if self.stale_since is None:
+                self.stale_since = self.state_time + self.state_timeout  # when it became stale
+                self.counts["stale_episodes"] += 1
             self.publish_safe("state stale")
             return
+        if self.stale_since is not None:  # a fresh state again: the episode ends
+            self.last_stale = now - self.stale_since
+            self.stale_since = None
+            self.get_logger().info(f"state fresh again after {self.last_stale:.2f} s stale: control resumes")
+        if not self.lockstep and not self.fresh_state:  # no new state since the last solve
+            self.counts["missed_samples"] += 1
         regions = self.store.active(now)  # drops expired regions
         if self.store.revision != self.regions_revision:
             try:
@@ -200,6 +236,7 @@ class ControllerNode(Node):
         started = time.perf_counter()
         result = self.controller.step(self.state, self.target)
         self.state_solved = True
+        self.fresh_state = False
         self.last_result = result
         self.last_command = result.u
         self.pub_command.publish(vector_to_array(result.u))
@@ -213,7 +250,7 @@ class ControllerNode(Node):
         self.publish_diagnostics(level, result.status, result, latency)
 
     def publish_safe(self, why: str) -> None:
-        """No solve: command the configured safe behaviour and report an ERROR."""
+        """No solve: command the configured safe behaviour and report an ERROR (every sample)."""
         behavior = self.stale_behavior
         if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
             u = self.last_result.u_a
@@ -247,7 +284,10 @@ class ControllerNode(Node):
         s = self.controller.settings
         values = {**{k: str(v) for k, v in self.counts.items()}, "mu": f"{s.mu:g}", "kappa": f"{s.kappa:g}",
                   "nlp_builds": str(self.controller.nlp_builds), "regions": str(len(self.controller.regions)),
-                  "command": str(np.asarray(self.last_command).tolist())}
+                  "command": str(np.asarray(self.last_command).tolist()),
+                  "state_age_ms": f"{self.state_age * 1e3:.1f}", "max_state_gap_ms": f"{self.max_state_gap * 1e3:.1f}",
+                  "stale_for_s": f"{0.0 if self.stale_since is None else self.now() - self.stale_since:.3f}",
+                  "last_stale_s": f"{self.last_stale:.3f}"}
         if result is not None:
             values.update({
                 "status": result.status, "solver_status": result.solver_status,
