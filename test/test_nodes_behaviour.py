@@ -203,7 +203,12 @@ def test_stale_state_triggers_the_safe_behaviour_and_an_error_then_control_resum
             listen.state_pub.publish(Float64MultiArray(data=[0.5, 0.0]))
             p.spin_for(0.05)
 
-    feed(2.0)
+    def solved() -> bool:  # discovery done both ways: states reach it, its diagnostics reach us
+        feed(0.2)
+        return bool(listen.diags) and listen.diags[-1].get("status") == "ok"
+
+    assert p.spin_until(solved, 30), ctrl.output()
+    feed(1.0)
     assert listen.diags and listen.diags[-1].get("status") == "ok"
     u_a = json.loads(listen.diags[-1]["command"])
     n_diag, n_cmd = len(listen.diags), len(listen.commands)

@@ -158,3 +158,17 @@ def test_simulate_picks_a_solver_path_by_name(capsys, tmp_path):
     assert "solver=fatrop" in capsys.readouterr().out
     assert main(["--solver", "no_such_path"]) == 2
     assert "solver must be one of" in capsys.readouterr().err
+
+
+def test_coast_applies_the_next_input_of_the_plan_and_shifts_the_warm_start():
+    controller = NmpcController(PAPER)
+    assert controller.coast() is None  # no plan yet
+    first = controller.step([-5.0, 0.0], [5.0])
+    coasted = controller.coast()
+    assert coasted.status == "fallback_shift" and coasted.solver_status == "no_new_state"
+    np.testing.assert_allclose(coasted.u, first.inputs[1])
+    np.testing.assert_allclose(coasted.states[0], first.states[1])
+    # two samples after the plan was made: the measured state is the plan's x(2)
+    res = controller.step(first.states[2], [5.0])
+    assert res.status == "ok"
+    np.testing.assert_allclose(res.inputs[0], first.inputs[2], atol=1e-3)

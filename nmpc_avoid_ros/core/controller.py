@@ -225,6 +225,23 @@ class NmpcController:
         self._pending = (w, lam_x, lam_g) if finite and budget_cut and nlp is self.nlp else None
         return self._fallback(x, solver_status, iterations, solve_time, budget_cut)
 
+    def coast(self) -> StepResult | None:
+        """A sample without a new measurement: the next input of the last plan (then u_a).
+
+        The plan ages by one sample, so the next `step` shifts its warm start accordingly; the
+        result's first state is the plan's prediction for now. None when there is no plan yet.
+        Status 'fallback_shift' (or 'fallback_steady' once the plan is used up), solver status
+        'no_new_state'.
+        """
+        plan = self._plan
+        if plan is None:
+            return None
+        plan.age += 1
+        N = self.nlp.layout.horizon
+        predicted = plan.states[plan.age] if plan.age <= N else plan.x_a
+        status = "fallback_shift" if plan.age < N else "fallback_steady"
+        return self._result(plan, predicted, plan.age, status, "no_new_state", 0, 0.0, False)
+
     def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray,
                 nlp: NlpBase) -> _Plan:
         U, X, y_a, _ = nlp.layout.split_w(w)
