@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import signal
 import sys
 import threading
@@ -40,6 +41,10 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
             # a bad parameter: say which and why, no traceback
             print(f"{name}: configuration error: {exc}", file=sys.stderr)
             return 2
+        # everything built at start-up (CasADi functions, the NLP, imports) moves to the permanent
+        # generation: the collector never scans it again, so its pauses inside callbacks stay short
+        gc.collect()
+        gc.freeze()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
