@@ -9,7 +9,6 @@ with no plan at all, a safe input (zero clipped to the input box).
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -204,9 +203,7 @@ class NmpcController:
             else self.nlp
         w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
         w0 = nlp.fill_slacks(w0, par)
-        start = time.perf_counter()
-        w, lam_x, lam_g, stats = nlp.solve(w0, par, lam_x0, lam_g0)
-        solve_time = time.perf_counter() - start
+        w, lam_x, lam_g, stats, solve_time = nlp.solve(w0, par, lam_x0, lam_g0)
         solver_status = str(stats.get("return_status", "unknown"))
         iterations = int(stats.get("iter_count", -1))
         solved = solver_status in SOLVED
