@@ -365,6 +365,8 @@ def markdown(report: dict[str, Any]) -> str:
             lines.append(f"| {key} | {st.get('count')} | {_fmt(st.get('median'))} | {_fmt(st.get('p90'))} | "
                          f"{_fmt(st.get('p99'))} | {_fmt(st.get('max'))} |")
         lines += ["", f"Start-up to the first command: cold cache {node['startup_s']['cold']} s, "
-                      f"warm cache {node['startup_s']['warm']} s; missed samples {node['missed_samples']} "
-                      f"of {node['samples']}."]
+                      f"warm cache {node['startup_s']['warm']} s (including DDS discovery); node ready "
+                      f"{node['ready_s']['cold']} s cold, {node['ready_s']['warm']} s warm (solver build alone: "
+                      f"{node['build_s']['cold']} s cold, {node['build_s']['warm']} s warm); "
+                      f"missed samples {node['missed_samples']} of {node['samples']}."]
     return "\n".join(lines) + "\n"

@@ -7,8 +7,11 @@ waits for the command, integrates one sample and publishes the next state. Measu
   (the node's own diagnostics, one value per sample);
 - `round_trip_ms`: at the probe, from publishing the state to receiving the command (two DDS
   hops plus the node's work: an upper bound of "state received -> command published");
-- `startup_s`: from starting the node's process to its first command, with an empty solver
-  cache (cold: generate and compile) and again with the cache it left (warm).
+- `startup_s`: from starting the node's process to its first command (imports, DDS discovery,
+  the solver build and the first, cold-start solve), with an empty solver cache (cold: generate
+  and compile) and again with the cache it left (warm); `ready_s`: from starting the process
+  to the node's "controller ready" line (imports, parameters, solver build); `build_s`: the
+  solver build alone, as the node logs it.
 
 The graph is isolated: its own ROS_DOMAIN_ID, localhost discovery, logs in a temp folder; the
 node runs in its own process group and is stopped by PID.
@@ -17,6 +20,7 @@ node runs in its own process group and is stopped by PID.
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 import time
 from collections.abc import Callable
@@ -73,6 +77,8 @@ def measure_node(samples: int = 300, progress: Callable[[str], None] = print, do
             rclpy.try_shutdown(context=context)
     warm = runs["warm"]
     return {"parameters": NODE_PARAMETERS, "startup_s": {k: v["startup_s"] for k, v in runs.items()},
+            "build_s": {k: v["build_s"] for k, v in runs.items()},
+            "ready_s": {k: v["ready_s"] for k, v in runs.items()},
             "step_latency_ms": _stats(warm["step_latency_ms"]), "round_trip_ms": _stats(warm["round_trip_ms"]),
             "missed_samples": warm["missed"], "samples": warm["samples"]}
 
@@ -134,6 +140,7 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Pa
     step = model.discrete(0.5, "euler")
     x = np.array([-5.0, 0.0])
     started = time.perf_counter()
+    spawned = time.time()
     proc = NodeProcess("controller", args, _env(domain, tmp / "ros_logs"), tmp / "logs")
     try:
         # re-send x0 until the first command: discovery and the solver build happen meanwhile
@@ -146,8 +153,14 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Pa
             probe.publish(x)
             if probe.wait_command(1, 0.05):
                 first = probe.commands[0][0] - started
-        progress(f"node start-up ({label} cache): {first:.2f} s to the first command")
-        _drain(probe, 1.0)  # the answers to the repeated x0 messages
+        _drain(probe, 1.0)  # the answers to the repeated x0 messages (and the node's log is flushed)
+        built = re.search(r"solver built in ([0-9.]+) s", proc.output())
+        # the node's own log stamp of "controller ready" (wall clock) against the spawn time
+        stamp = re.search(r"\[(\d+\.\d+)\] \[[^\]]*\]: controller ready", proc.output())
+        ready = float(stamp.group(1)) - spawned if stamp else None
+        build_s = float(built.group(1)) if built else None
+        progress(f"node start-up ({label} cache): solver built in {build_s} s, ready after {ready} s, "
+                 f"{first:.2f} s to the first command")
         round_trips, missed = [], 0
         x = np.array([-5.0, 0.0])
         for k in range(samples):
@@ -163,7 +176,9 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Pa
             x = np.asarray(step(x, u)).ravel()
         probe.executor.spin_once(timeout_sec=0.2)
         latencies = list(probe.latencies[-len(round_trips):]) if round_trips else []
-        return {"startup_s": round(first, 3), "round_trip_ms": round_trips, "step_latency_ms": latencies,
+        return {"startup_s": round(first, 3), "build_s": build_s,
+                "ready_s": None if ready is None else round(ready, 3), "round_trip_ms": round_trips,
+                "step_latency_ms": latencies,
                 "missed": missed, "samples": samples}
     finally:
         proc.stop()

@@ -73,7 +73,9 @@ class ControllerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("controller", **kwargs)
         values = declare(self, settings_specs() + NODE_SPECS)
+        build_started = time.perf_counter()
         self.controller = NmpcController(settings_from_values(values))  # the one NLP build
+        self.build_seconds = time.perf_counter() - build_started
         model = self.controller.model
         self.n, self.m, self.p = model.n, model.m, model.p
         s = self.controller.settings
@@ -121,8 +123,15 @@ class ControllerNode(Node):
             f"controller ready: model={s.model} N={s.horizon} Ts={s.sample_time}s {s.discretization} "
             f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
             f"mode={'lockstep' if self.lockstep else 'timer'} "
-            f"target={None if self.target is None else self.target.tolist()}"
+            f"target={None if self.target is None else self.target.tolist()} "
+            f"solver built in {self.build_seconds:.2f} s{self._cache_note()}"
         )
+
+    def _cache_note(self) -> str:
+        info = self.controller.nlp.solver_info
+        if not info["codegen"]:
+            return ""
+        return f" (compiled library {'from the cache' if info['cache_hit'] else 'generated and compiled'})"
 
     # -- inputs ------------------------------------------------------------------------------
     def now(self) -> float:
