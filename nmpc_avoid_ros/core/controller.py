@@ -19,7 +19,7 @@ from .models import Model
 from .nlp import NlpBase, TrackingNlp
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
-from .stagewise import StagewiseNlp
+from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
 
 #: return statuses after which the solution is used as is (IPOPT, sqpmethod; FATROP reports 0)
 SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
@@ -27,9 +27,7 @@ SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
 BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
 
 
-#: budget of a cold start (no previous plan) of the fast paths: at least this many iterations,
-#: and this multiple of max_solve_time
-COLD_START_ITERATIONS = 200
+#: the reference's time budget for a cold start (no previous plan): this multiple of max_solve_time
 COLD_START_TIME_FACTOR = 10.0
 
 
@@ -199,20 +197,30 @@ class NmpcController:
             x, y_t, self._slots, kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
             input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
         )
-        nlp = self.cold_nlp if self.cold_nlp is not None and self._plan is None and self._pending is None \
-            else self.nlp
-        w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
-        w0 = nlp.fill_slacks(w0, par)
-        w, lam_x, lam_g, stats, solve_time = nlp.solve(w0, par, lam_x0, lam_g0)
-        solver_status = str(stats.get("return_status", "unknown"))
-        iterations = int(stats.get("iter_count", -1))
-        solved = solver_status in SOLVED
-        budget_cut = solver_status in BUDGET_EXHAUSTED or (not solved and iterations >= s.max_iterations)
-        finite = bool(np.all(np.isfinite(w)))
-        # an unconverged iterate (budget cut, or a stalled SQP line search) is a valid plan when
-        # it is feasible: the paper's recursive feasibility needs feasibility, not optimality
-        usable = finite and (solved or nlp.violation(w, par) <= s.feasibility_tolerance)
-        if nlp is not self.nlp:  # a cold start: the fast path's own multipliers start from zero
+        cold = self.cold_nlp is not None and self._plan is None and self._pending is None
+        # SQP paths try a cold start themselves first (cheap, and it works on small problems);
+        # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
+        nlps = [self.cold_nlp] if cold and not s.solver.startswith("sqp") else \
+            [self.nlp, self.cold_nlp] if cold else [self.nlp]
+        elapsed = 0.0
+        for nlp in nlps:
+            w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
+            w0 = nlp.fill_slacks(w0, par)
+            w, lam_x, lam_g, stats, solve_time = nlp.solve(w0, par, lam_x0, lam_g0, cold=cold)
+            elapsed += solve_time
+            solver_status = str(stats.get("return_status", "unknown"))
+            iterations = int(stats.get("iter_count", -1))
+            solved = solver_status in SOLVED
+            budget = COLD_START_ITERATIONS if cold else s.max_iterations
+            budget_cut = solver_status in BUDGET_EXHAUSTED or (not solved and iterations >= budget)
+            finite = bool(np.all(np.isfinite(w)))
+            # an unconverged iterate (budget cut, or a stalled SQP line search) is a valid plan when
+            # it is feasible: the paper's recursive feasibility needs feasibility, not optimality
+            usable = finite and (solved or nlp.violation(w, par) <= s.feasibility_tolerance)
+            if usable:
+                break
+        solve_time = elapsed
+        if nlp is not self.nlp:  # solved by the reference: the fast path's multipliers start from zero
             lam_x, lam_g = np.zeros(self.nlp.layout.n_w), np.zeros(self.nlp.lbg.size)
         if usable:
             self._pending = None
