@@ -6,6 +6,8 @@ Speed itself is measured by the benchmark (bench/, BENCHMARKS.md), not here.
 from __future__ import annotations
 
 import functools
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -172,3 +174,15 @@ def test_coast_applies_the_next_input_of_the_plan_and_shifts_the_warm_start():
     res = controller.step(first.states[2], [5.0])
     assert res.status == "ok"
     np.testing.assert_allclose(res.inputs[0], first.inputs[2], atol=1e-3)
+
+
+def test_shipped_fast_config_reproduces_the_paper_loop(tmp_path, monkeypatch, capsys):
+    from nmpc_avoid_ros.tools.simulate import main
+
+    monkeypatch.setenv("NMPC_AVOID_ROS_CACHE", str(tmp_path))
+    config = Path(__file__).resolve().parents[1] / "config" / "van_der_pol_fast.yaml"
+    out = tmp_path / "run.json"
+    assert main(["--config", str(config), "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())["summary"]
+    assert summary["settling_step"] == 33 and summary["max_abs_x1x2"] <= 2.005
+    assert summary["fallbacks"] == 0 and list(tmp_path.glob("*.so"))
