@@ -55,7 +55,9 @@ def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo
     # lockstep: one command, one prediction, one diagnostic per state answered, one clock tick per state
     assert counts["/command"] == counts["/controller/prediction"] == counts["/diagnostics"]
     assert counts["/state"] >= 51 and counts["/clock"] == counts["/state"]
-    assert counts["/command"] in (counts["/state"], counts["/state"] - 1)
+    # at shutdown (plant stopped first) the last state can reach the controller but not the
+    # recorder, or the last command the recorder but no plant: the counts differ by at most one
+    assert abs(counts["/command"] - counts["/state"]) <= 1
     # the decoded states are what the plant published: the offline loop of the same configuration
     np.testing.assert_allclose(np.array(states[:51]), paper(RUNS[name], "euler").x, atol=1e-12)
 
