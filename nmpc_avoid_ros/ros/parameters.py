@@ -19,8 +19,10 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ..core.settings import RUNTIME_FIELDS, SETTING_DOCS, ControllerSettings
 
-#: state, command, diagnostics, prediction, clock: reliable, keep last 10
-STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+#: state, command, diagnostics, prediction, clock: reliable, keep last 100. A reliable writer drops
+#: samples a reader has not acknowledged once its history is full: with 10, a recorder busy for
+#: half a second (start-up, a chunk write on a loaded machine) lost states published at 20 Hz
+STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
 #: target and obstacles: the latest value reaches late joiners (a restarted controller)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
