@@ -11,17 +11,16 @@ from pathlib import Path
 import rclpy
 from rclpy.node import Node
 
-from nmpc_avoid_ros.tools.processes import NodeProcess  # noqa: F401 - re-exported for the tests
+from nmpc_avoid_ros.tools.processes import NodeProcess, isolated_env  # noqa: F401 - NodeProcess re-exported
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "van_der_pol.yaml"
 
 
 def ros_env(domain_id: int, log_dir: Path) -> dict[str, str]:
-    """Environment of child nodes: own domain, localhost discovery only, logs in a temp dir."""
-    env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_LOG_DIR=str(log_dir),
-               PYTHONPATH=str(ROOT) + os.pathsep + env.get("PYTHONPATH", ""), PYTHONUNBUFFERED="1")
+    """The package's isolated node environment, with the source tree importable by the children."""
+    env = isolated_env(domain_id, log_dir)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     return env
 
 

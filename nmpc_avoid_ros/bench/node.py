@@ -31,18 +31,11 @@ import numpy as np
 
 from ..core.models import make_model
 from ..core.settings import default_config_path
-from ..tools.processes import NodeProcess
+from ..tools.processes import NodeProcess, isolated_env
 
 #: node parameters of the measured controller: the fast path, compiled, solving on each state
 NODE_PARAMETERS = {"solver": "sqp", "codegen": "true", "lockstep": "true", "max_ellipses": "0",
                    "max_polygons": "0", "target": "[5.0]"}
-
-
-def _env(domain: int, log_dir: Path) -> dict[str, str]:
-    env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_LOG_DIR=str(log_dir),
-               PYTHONUNBUFFERED="1")
-    return env
 
 
 def _stats(values: list[float]) -> dict[str, float]:
@@ -141,7 +134,7 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Pa
     x = np.array([-5.0, 0.0])
     started = time.perf_counter()
     spawned = time.time()
-    proc = NodeProcess("controller", args, _env(domain, tmp / "ros_logs"), tmp / "logs")
+    proc = NodeProcess("controller", args, isolated_env(domain, tmp / "ros_logs"), tmp / "logs")
     try:
         # re-send x0 until the first command: discovery and the solver build happen meanwhile
         first = None

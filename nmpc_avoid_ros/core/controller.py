@@ -79,7 +79,6 @@ class StepResult:
 class _Plan:
     """The last accepted solution and how many samples ago it was computed."""
 
-    w: np.ndarray
     inputs: np.ndarray
     states: np.ndarray
     y_a: np.ndarray
@@ -200,8 +199,14 @@ class NmpcController:
         cold = self.cold_nlp is not None and self._plan is None and self._pending is None
         # SQP paths try a cold start themselves first (cheap, and it works on small problems);
         # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
-        nlps = [self.cold_nlp] if cold and not s.solver.startswith("sqp") else \
-            [self.nlp, self.cold_nlp] if cold else [self.nlp]
+        if not cold:
+            nlps = [self.nlp]
+        elif s.solver.startswith("sqp"):
+            nlps = [self.nlp, self.cold_nlp]
+        else:
+            nlps = [self.cold_nlp]
+        # a cold start runs with the cold-start budget (StagewiseNlp.cold_solver, the reference's build)
+        budget = max(s.max_iterations, COLD_START_ITERATIONS) if cold else s.max_iterations
         elapsed = 0.0
         for nlp in nlps:
             w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
@@ -211,7 +216,6 @@ class NmpcController:
             solver_status = str(stats.get("return_status", "unknown"))
             iterations = int(stats.get("iter_count", -1))
             solved = solver_status in SOLVED
-            budget = COLD_START_ITERATIONS if cold else s.max_iterations
             budget_cut = solver_status in BUDGET_EXHAUSTED or (not solved and iterations >= budget)
             finite = bool(np.all(np.isfinite(w)))
             # an unconverged iterate (budget cut, or a stalled SQP line search) is a valid plan when
@@ -252,7 +256,7 @@ class NmpcController:
         U, X, y_a, _ = nlp.layout.split_w(w)
         x_a, u_a = (v.copy() for v in nlp.steady(w))
         costs = tuple(float(c[0]) for c in nlp.terms(w, par))
-        self._plan = _Plan(w, U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
+        self._plan = _Plan(U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
         return self._plan
 
     def _initial_guess(self, x: np.ndarray, y_t: np.ndarray, nlp: NlpBase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

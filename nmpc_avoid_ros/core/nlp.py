@@ -20,6 +20,7 @@ but a twice-differentiable NLP (measured: far fewer IPOPT iterations near region
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 
@@ -157,28 +158,45 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
 class Buffered:
     """A CasADi Function called through `Function.buffer()`: arrays bound once, no conversion per call.
 
-    `f(*args)` copies the inputs into the bound arrays, evaluates, and returns the output arrays
-    (dense, 1-d). They are overwritten by the next call: copy what you keep. A dict call of a
-    small Function costs ~0.1 ms in conversions; this costs a few microseconds.
+    `f(*args)` copies the inputs that are not `fixed` (in order) into the bound arrays, evaluates,
+    and returns the output arrays (1-d; dense unless `densify` is False, for a Function whose
+    outputs already are, such as a solver). They are overwritten by the next call: copy what you
+    keep. `seconds` is the wall time of the last evaluation alone. A dict call of a small Function
+    costs ~0.1 ms in conversions; this costs a few microseconds.
     """
 
-    def __init__(self, function: ca.Function) -> None:
-        symbols = [ca.SX.sym(f"in{i}", function.sparsity_in(i)) for i in range(function.n_in())]
-        self.function = ca.Function(function.name(), symbols, [ca.densify(out) for out in function.call(symbols)])
-        self._args = [np.zeros(self.function.nnz_in(i)) for i in range(self.function.n_in())]
-        self._results = [np.zeros(self.function.nnz_out(i)) for i in range(self.function.n_out())]
-        buffer, self._trigger = self.function.buffer()
-        for i, arr in enumerate(self._args):
+    def __init__(self, function: ca.Function, fixed: dict[int, np.ndarray] | None = None,
+                 densify: bool = True) -> None:
+        if densify:
+            symbols = [ca.SX.sym(f"in{i}", function.sparsity_in(i)) for i in range(function.n_in())]
+            function = ca.Function(function.name(), symbols, [ca.densify(out) for out in function.call(symbols)])
+        self.function = function
+        fixed = fixed or {}
+        args = [np.zeros(function.nnz_in(i)) for i in range(function.n_in())]
+        for i, value in fixed.items():
+            np.copyto(args[i], value)
+        self._args = args  # the buffer holds raw pointers into these: they must live as long as it
+        self._free = [arr for i, arr in enumerate(args) if i not in fixed]
+        self._results = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
+        buffer, self._trigger = function.buffer()
+        for i, arr in enumerate(args):
             buffer.set_arg(i, memoryview(arr))
         for i, arr in enumerate(self._results):
             buffer.set_res(i, memoryview(arr))
         self._buffer = buffer
+        self.seconds = 0.0
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        for target, value in zip(self._args, args, strict=True):
+        for target, value in zip(self._free, args, strict=True):
             np.copyto(target, np.ravel(value))
+        start = time.perf_counter()
         self._trigger()
+        self.seconds = time.perf_counter() - start
         return self._results
+
+    def stats(self) -> dict:
+        """The Function's statistics of the last call (a solver's iterations and return status)."""
+        return self._buffer.stats()
 
 
 class NlpBase:
@@ -223,36 +241,24 @@ class NlpBase:
         The call goes through `Function.buffer()` with arrays bound once, so no argument is
         converted or allocated per call (a dict call costs ~0.15 ms more, measured).
         """
-        solver = self.cold_solver if cold and self.cold_solver is not None else self.solver
-        if not hasattr(self, "_bound"):
-            self._bound: dict[int, tuple] = {}
-        bound = self._bound.get(id(solver))
-        if bound is None:
-            bound = self._bound[id(solver)] = self._bind_buffer(solver)
-        args, results, buffer, trigger = bound
-        np.copyto(args[0], w0)
-        np.copyto(args[1], par)
-        np.copyto(args[6], lam_x0)
-        np.copyto(args[7], lam_g0)
-        start = time.perf_counter()
-        trigger()
-        seconds = time.perf_counter() - start
-        return results[0].copy(), results[3].copy(), results[4].copy(), buffer.stats(), seconds
+        call = self._cold_solver_call if cold and self.cold_solver is not None else self._solver_call
+        results = call(w0, par, lam_x0, lam_g0)
+        return results[0].copy(), results[3].copy(), results[4].copy(), call.stats(), call.seconds
 
-    def _bind_buffer(self, solver: ca.Function) -> tuple:
+    @functools.cached_property
+    def _solver_call(self) -> Buffered:
+        return self._buffered(self.solver)
+
+    @functools.cached_property
+    def _cold_solver_call(self) -> Buffered:
+        return self._buffered(self.cold_solver)
+
+    def _buffered(self, solver: ca.Function) -> Buffered:
+        """The solver with its bounds bound once; called with (x0, p, lam_x0, lam_g0)."""
         if list(solver.name_in()) != ["x0", "p", "lbx", "ubx", "lbg", "ubg", "lam_x0", "lam_g0"] or \
                 list(solver.name_out()[:6]) != ["x", "f", "g", "lam_x", "lam_g", "lam_p"]:
             raise ConfigError(f"unexpected solver signature {solver.name_in()} -> {solver.name_out()}")
-        args = [np.zeros(solver.nnz_in(i)) for i in range(solver.n_in())]
-        for i, bound in ((2, self.lbx), (3, self.ubx), (4, self.lbg), (5, self.ubg)):
-            np.copyto(args[i], bound)
-        results = [np.zeros(solver.nnz_out(i)) for i in range(solver.n_out())]
-        buffer, trigger = solver.buffer()
-        for i, arr in enumerate(args):
-            buffer.set_arg(i, memoryview(arr))
-        for i, arr in enumerate(results):
-            buffer.set_res(i, memoryview(arr))
-        return args, results, buffer, trigger
+        return Buffered(solver, fixed={2: self.lbx, 3: self.ubx, 4: self.lbg, 5: self.ubg}, densify=False)
 
     def fill_slacks(self, w: np.ndarray, par: np.ndarray) -> np.ndarray:
         """w with its slacks set to max(0, depth) of its own states (the tightest feasible slacks)."""

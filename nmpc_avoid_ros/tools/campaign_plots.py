@@ -37,6 +37,13 @@ def _families(records: Sequence[Mapping[str, Any]]) -> list[str]:
     return list(dict.fromkeys(r["family"] for r in records))
 
 
+def _family_panels(records: Sequence[Mapping[str, Any]]) -> tuple[plt.Figure, list[tuple[Any, str, list]]]:
+    """One panel per model family, side by side: the figure and (axes, family, its records) per panel."""
+    fams = _families(records)
+    fig, axes = plt.subplots(1, len(fams), figsize=(5.5 * len(fams), 3.6), dpi=110, squeeze=False)
+    return fig, [(ax, fam, [r for r in records if r["family"] == fam]) for ax, fam in zip(axes[0], fams)]
+
+
 def _save(fig: plt.Figure, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path)
@@ -46,10 +53,8 @@ def _save(fig: plt.Figure, path: Path) -> Path:
 
 def final_error_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
     """Histogram of |y_K - y*| (log scale) per family, stacked by outcome."""
-    fams = _families(records)
-    fig, axes = plt.subplots(1, len(fams), figsize=(5.5 * len(fams), 3.6), dpi=110, squeeze=False)
-    for ax, fam in zip(axes[0], fams):
-        recs = [r for r in records if r["family"] == fam]
+    fig, panels = _family_panels(records)
+    for ax, fam, recs in panels:
         bins = np.linspace(-12, 2, 57)
         data, colors, labels = [], [], []
         for name, color in OUTCOMES:
@@ -70,10 +75,8 @@ def final_error_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
 
 def penetration_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
     """Histogram of the max penetration per run (runs that never entered a region are counted apart)."""
-    fams = _families(records)
-    fig, axes = plt.subplots(1, len(fams), figsize=(5.5 * len(fams), 3.6), dpi=110, squeeze=False)
-    for ax, fam in zip(axes[0], fams):
-        recs = [r for r in records if r["family"] == fam]
+    fig, panels = _family_panels(records)
+    for ax, fam, recs in panels:
         bins = np.linspace(-10, 1, 45)
         for key, color, label in (("max_penetration_keep_in", "tab:purple", "keep-in (expression g)"),
                                   ("max_penetration_obstacles", "tab:red", "ellipses (1 - r^2)")):
@@ -92,10 +95,9 @@ def penetration_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
 def solve_time_plot(records: Sequence[Mapping[str, Any]], settings: Mapping[str, ControllerSettings],
                     path: Path) -> Path:
     """Distribution of every sample's solve time (ms, log bins), with the budget and Ts marked."""
-    fams = _families(records)
-    fig, axes = plt.subplots(1, len(fams), figsize=(5.5 * len(fams), 3.6), dpi=110, squeeze=False)
-    for ax, fam in zip(axes[0], fams):
-        vals = np.concatenate([r["trace"]["solve_ms"] for r in records if r["family"] == fam])
+    fig, panels = _family_panels(records)
+    for ax, fam, recs in panels:
+        vals = np.concatenate([r["trace"]["solve_ms"] for r in recs])
         vals = np.maximum(vals, 1e-2)
         ax.hist(vals, bins=np.logspace(math.log10(vals.min()), math.log10(max(vals.max(), 10 * vals.min())), 60),
                 color="tab:blue")

@@ -11,6 +11,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 
+def isolated_env(domain_id: int, log_dir: Path) -> dict[str, str]:
+    """Environment of child nodes: own ROS domain, localhost discovery only, logs in log_dir, unbuffered output."""
+    env = dict(os.environ)
+    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_LOG_DIR=str(log_dir),
+               PYTHONUNBUFFERED="1")
+    return env
+
+
 class NodeProcess:
     """`python -m nmpc_avoid_ros <command> ...` in its own process group, output to a log file."""
 
