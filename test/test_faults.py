@@ -13,6 +13,7 @@ import json
 import random
 import signal
 import time
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -71,7 +72,10 @@ def test_kill_9_and_restart_plant_controller_and_recorder_in_turn(ros_graph, tmp
     plant = start("plant", *PARAMS)
     procs = [rec, ctrl, plant]
     ok = lambda since=0: [d for d in listen.diags[since:] if d["level"] == OK_LEVEL and "status" in d]  # noqa: E731
-    wait(listen, "the loop closes", lambda: len(ok()) >= 3, 60, *procs)
+    # the probe matches each writer on its own: on a loaded machine the controller can be solving
+    # before the probe has seen a state, and the plant's last state is needed for its restart
+    wait(listen, "the loop closes and the probe sees states", lambda: len(ok()) >= 3 and len(states) >= 3, 60,
+         *procs)
 
     # -- 1. the plant dies: stale state, safe behaviour with an ERROR every sample, others alive
     assert plant.stop(signal.SIGKILL) == -signal.SIGKILL
@@ -89,6 +93,7 @@ def test_kill_9_and_restart_plant_controller_and_recorder_in_turn(ros_graph, tmp
     stale_commands = [json.loads(d["command"])[0] for d in stale()]
     assert stale_commands == pytest.approx([u_a] * len(stale_commands), abs=1e-9)
     x_last = states[-1][1]
+    first_plant_states = len(states)  # the probe's states from here on are the second plant's
     plant = start("plant", *PARAMS, "-p", f"initial_state:=[{x_last[0]!r}, {x_last[1]!r}]")
     procs[2] = plant
     t_restart = time.monotonic()
@@ -130,14 +135,27 @@ def test_kill_9_and_restart_plant_controller_and_recorder_in_turn(ros_graph, tmp
     # flush_period 0.5 s: whatever reached the recorder more than ~1 s before the kill is on disk
     # (the probe and the recorder receive the same state messages; the plant's states are distinct while it moves)
     recorded = [tuple(m.data) for _, m in bag.topics["/state"]]
-    first = recorded.index(tuple(states[0][1])) if tuple(states[0][1]) in recorded else 0
-    since = next(t for t, x in states if tuple(x) == recorded[first])  # the recorder's first state
-    # skip the recorder's first second: while both processes still start up on a loaded machine,
-    # the plant's keep-last writer history can overwrite states the recorder has not acknowledged
-    # yet (DDS behaviour, seen once: 2 of 125 states); the property under test is the kill
-    expected = {tuple(x) for t, x in states if since + 1.0 <= t < t_rec_kill - 1.0}
-    missing = expected - set(recorded)
-    assert not missing, (len(missing), len(expected), sorted(missing)[:5])
+    recorded_set = set(recorded)
+    expected: set[tuple[float, ...]] = set()
+    # Each plant is a new DDS writer that the probe and the recorder match independently, and a
+    # volatile writer's samples before a match are not delivered (seen: the recorder matched the
+    # restarted plant about 1 s after the probe). So, per plant, compare from the recorder's first
+    # state of that plant on, dated by a state the probe saw once (a holding plant repeats its x0:
+    # (-5, 0) for the first, the first one's last state for the second). The recorder's first second
+    # of each is skipped too: start-up of a reliable match can drop early states (seen once: 2 of
+    # 125). The property under test is the kill.
+    seen = Counter(tuple(x) for _, x in states)
+    for plant_states in (states[:first_plant_states], states[first_plant_states:]):
+        since = next((t for t, x in plant_states if seen[tuple(x)] == 1 and tuple(x) in recorded_set), None)
+        if since is not None:
+            expected |= {tuple(x) for t, x in plant_states if since + 1.0 <= t < t_rec_kill - 1.0}
+    assert len(expected) >= 20, f"the recorder got too few states of the second plant to judge: {len(expected)}"
+    missing = expected - recorded_set
+    if missing:
+        where = [(i, round(t - t_rec_kill, 2)) for i, (t, x) in enumerate(states) if tuple(x) in missing]
+        pytest.fail(f"{len(missing)} of {len(expected)} states missing from the bag (probe index, s before the "
+                    f"kill; second plant from index {first_plant_states}): {where[:8]} ... {where[-3:]}\n"
+                    f"recorder output:\n{rec.output()[-3000:]}")
     recorded_states, settled_before = len(recorded), len(expected)
     lag = (time.time_ns() - bag.topics["/state"][-1][0]) * 1e-9 - (time.monotonic() - t_rec_kill)
     assert bag.counts()["/target"] == 1 and bag.counts()["/command"] >= 10
