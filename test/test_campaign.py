@@ -11,6 +11,7 @@ import pytest
 from nmpc_avoid_ros.core.closed_loop import SETTLING_TOLERANCE
 from nmpc_avoid_ros.core.models import make_model
 from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.settings import default_config_path
 from nmpc_avoid_ros.tools.campaign import (
     JSON_NAME,
     JSONL_NAME,
@@ -128,6 +129,15 @@ def test_scenarios_are_reproducible_and_independent_of_the_count():
         assert abs(x1) <= 6 and abs(x2) <= 2 and abs(x1 * x2) <= 2 and -8 <= spec["target"][0] <= 8
         for e in spec["ellipses"]:
             assert Ellipse(tuple(e["center"]), tuple(e["semi_axes"]), e["yaw"]).depth((x1, x2)) < 0
+
+
+def test_a_van_der_pol_config_elsewhere_keeps_the_shipped_robot_config(tmp_path):
+    own = tmp_path / "my_vdp.yaml"
+    own.write_text((default_config_path().parent / "van_der_pol.yaml").read_text())
+    fams = families(own)
+    assert fams["vdp"].config == own
+    assert fams["robot"].config == default_config_path().parent / "mobile_robot.yaml"
+    assert fams["robot"].config.is_file()
 
 
 def test_reachable_set_and_passages():

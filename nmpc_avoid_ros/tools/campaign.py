@@ -312,8 +312,9 @@ def planar_passage(y_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Regi
 def families(vdp_config: Path | None = None, robot_config: Path | None = None, vdp_steps: int = 80,
              robot_steps: int = 140) -> dict[str, Family]:
     """The two model families of the campaign, keyed 'vdp' and 'robot' (steps: samples per run)."""
-    vdp = Path(vdp_config) if vdp_config else default_config_path()
-    robot = Path(robot_config) if robot_config else vdp.parent / "mobile_robot.yaml"
+    shipped = default_config_path().parent
+    vdp = Path(vdp_config) if vdp_config else shipped / "van_der_pol.yaml"
+    robot = Path(robot_config) if robot_config else shipped / "mobile_robot.yaml"
     return {"vdp": Family("vdp", vdp, vdp_steps, vdp_scenario),
             "robot": Family("robot", robot, robot_steps, robot_scenario)}
 
