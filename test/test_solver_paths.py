@@ -186,3 +186,24 @@ def test_shipped_fast_config_reproduces_the_paper_loop(tmp_path, monkeypatch, ca
     summary = json.loads(out.read_text())["summary"]
     assert summary["settling_step"] == 33 and summary["max_abs_x1x2"] <= 2.005
     assert summary["fallbacks"] == 0 and list(tmp_path.glob("*.so"))
+
+
+def test_a_failed_warm_solve_is_reseeded_by_the_reference_on_the_next_sample():
+    """A campaign case (vdp-0053, seed 0) where the Gauss-Newton SQP stalls on its own shifted
+    guess: without a re-seed it fell back on every sample after the first (75 of 80 steady)."""
+    settings = ControllerSettings(solver="sqp", max_iterations=100, max_ellipses=4, max_polygons=0)
+    ellipses = [Ellipse((0.7457441621157708, 1.8267851342385972), (1.2231836060424943, 0.6113198492468527),
+                        2.87267719273039),
+                Ellipse((-5.611011741730347, -0.8486668081712256), (0.5039247496810355, 0.27197309640083045),
+                        0.2990693975106868),
+                Ellipse((-3.9237923926657623, -0.746251734882768), (0.6588111777657775, 0.7754012302276864),
+                        0.44466204137123466),
+                Ellipse((-4.60102777246489, -0.1389076786574137), (0.3271352666571766, 0.3291813331356161),
+                        0.8655145876059412)]
+    controller = NmpcController(settings)
+    run = run_closed_loop(controller, [-0.2885125577159693, -1.8286417798494807], [-6.476806448979916], 12,
+                          "euler", regions=lambda k: ellipses if k == 0 else None)
+    assert run.status[1].startswith("fallback")  # the stall this test is about
+    assert run.status[2] == "ok"  # re-seeded: the cold-start solvers, from the shifted plan
+    assert sum(s.startswith("fallback") for s in run.status) <= len(run.status) // 2
+    assert run.x[-1, 0] < run.x[0, 0] - 2.0  # it moves towards y_t instead of holding

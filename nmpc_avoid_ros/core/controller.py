@@ -140,6 +140,10 @@ class NmpcController:
         # the last iterate of a budget-cut solve that could not be applied: the next sample
         # continues the optimisation from it (shifted) instead of starting over
         self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # a warm solve of the fast path failed outright (no usable iterate, no budget cut to go
+        # on from): the next sample re-seeds through the cold-start solvers, else the fast path
+        # can stall on its own shifted guess sample after sample (measured in the campaign)
+        self._reseed = False
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
 
@@ -179,6 +183,7 @@ class NmpcController:
         """Forget the last plan (the next step starts cold)."""
         self._plan = None
         self._pending = None
+        self._reseed = False
 
     # -- the sample --------------------------------------------------------------------------
     def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None) -> StepResult:
@@ -196,7 +201,7 @@ class NmpcController:
             x, y_t, self._slots, kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
             input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
         )
-        cold = self.cold_nlp is not None and self._plan is None and self._pending is None
+        cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed)
         # SQP paths try a cold start themselves first (cheap, and it works on small problems);
         # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
         if not cold:
@@ -228,10 +233,12 @@ class NmpcController:
             lam_x, lam_g = np.zeros(self.nlp.layout.n_w), np.zeros(self.nlp.lbg.size)
         if usable:
             self._pending = None
+            self._reseed = False
             plan = self._accept(x, w, par, lam_x, lam_g, nlp)
             status = "ok" if solved else "truncated"
             return self._result(plan, x, 0, status, solver_status, iterations, solve_time, budget_cut)
         self._pending = (w, lam_x, lam_g) if finite and budget_cut and nlp is self.nlp else None
+        self._reseed = self.cold_nlp is not None and self._pending is None
         return self._fallback(x, solver_status, iterations, solve_time, budget_cut)
 
     def coast(self) -> StepResult | None:
@@ -290,8 +297,11 @@ class NmpcController:
         U = np.vstack([plan.inputs[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
         X = np.vstack([plan.states[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
+        w0 = layout.join_w(U, X, plan.y_a, rest, x0=x)
+        if nlp is not self.nlp:  # a re-seed by the reference: the plan's multipliers are the fast path's
+            return w0, np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
         lam_x, lam_g = self.nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
-        return layout.join_w(U, X, plan.y_a, rest, x0=x), lam_x, lam_g
+        return w0, lam_x, lam_g
 
     def _steady_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.model.steady_state is not None:
