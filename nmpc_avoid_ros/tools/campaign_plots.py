@@ -44,6 +44,15 @@ def _family_panels(records: Sequence[Mapping[str, Any]]) -> tuple[plt.Figure, li
     return fig, [(ax, fam, [r for r in records if r["family"] == fam]) for ax, fam in zip(axes[0], fams)]
 
 
+def _label_panel(ax: Any, fam: str, title: str, xlabel: str, ylabel: str = "scenarios", **title_kw: Any) -> None:
+    """Title "<family>: <title>", axis labels, legend and grid of one family panel."""
+    ax.set_title(f"{FAMILY_TITLES.get(fam, fam)}: {title}", **title_kw)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+
+
 def _save(fig: plt.Figure, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path)
@@ -65,11 +74,7 @@ def final_error_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
                 labels.append(f"{name} ({len(vals)})")
         ax.hist(data, bins=bins, stacked=True, color=colors, label=labels)
         ax.axvline(math.log10(SETTLING_TOLERANCE), color="k", ls="--", lw=1, label=f"tolerance {SETTLING_TOLERANCE:g}")
-        ax.set_xlabel("log10 |y_K - y*|  (y* = best reachable point)")
-        ax.set_ylabel("scenarios")
-        ax.set_title(f"{FAMILY_TITLES.get(fam, fam)}: final distance to y*")
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
+        _label_panel(ax, fam, "final distance to y*", "log10 |y_K - y*|  (y* = best reachable point)")
     return _save(fig, path)
 
 
@@ -84,11 +89,7 @@ def penetration_plot(records: Sequence[Mapping[str, Any]], path: Path) -> Path:
             pos = [math.log10(v) for v in vals if v > 0]
             zero = sum(v <= 0 for v in vals)
             ax.hist(pos, bins=bins, alpha=0.6, color=color, label=f"{label}: {zero} runs never inside")
-        ax.set_xlabel("log10 max penetration")
-        ax.set_ylabel("scenarios")
-        ax.set_title(f"{FAMILY_TITLES.get(fam, fam)}: deepest sampled point inside a region")
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
+        _label_panel(ax, fam, "deepest sampled point inside a region", "log10 max penetration")
     return _save(fig, path)
 
 
@@ -108,12 +109,8 @@ def solve_time_plot(records: Sequence[Mapping[str, Any]], settings: Mapping[str,
         ax.set_xscale("log")
         ax.set_yscale("log")
         p50, p99 = np.percentile(vals, [50, 99])
-        ax.set_title(f"{FAMILY_TITLES.get(fam, fam)}: {len(vals)} solves, median {p50:.0f} ms, "
-                     f"p99 {p99:.0f} ms, max {vals.max():.0f} ms", fontsize=9)
-        ax.set_xlabel("solve time (ms)")
-        ax.set_ylabel("samples")
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
+        _label_panel(ax, fam, f"{len(vals)} solves, median {p50:.0f} ms, p99 {p99:.0f} ms, max {vals.max():.0f} ms",
+                     "solve time (ms)", "samples", fontsize=9)
     return _save(fig, path)
 
 
