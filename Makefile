@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 OUT    ?= out
 PYTEST_ARGS ?=
 
-.PHONY: venv demo test lint bench clean
+.PHONY: venv demo test lint bench clean readme
 
 venv: $(STAMP)
 
@@ -27,6 +27,10 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check nmpc_avoid_ros test
+
+# the README's parameter tables from the parameters' declarations (core/schema.py explains them)
+readme: $(STAMP)
+	$(BIN)/python -m nmpc_avoid_ros.tools.readme_tables
 
 clean:
 	rm -rf $(OUT) build install log *.egg-info

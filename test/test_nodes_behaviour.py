@@ -190,6 +190,14 @@ def test_param_set_of_mu_and_kappa_takes_effect_at_the_next_sample_and_bad_value
         assert not result.successful and result.reason, bad.name
     (result,) = set_params(Parameter("horizon", value=10))
     assert not result.successful and "read-only" in result.reason.lower()
+    # the node's own parameters are validated through the same declarations; a bad batch changes nothing
+    for bad in (Parameter("stale_behavior", value="panic"), Parameter("target", value=[1.0, 2.0]),
+                Parameter("safe_input", value=[0.0, 0.0])):
+        (result,) = set_params(bad)
+        assert not result.successful and bad.name in result.reason, (bad.name, result.reason)
+    batch = client.set_parameters_atomically([Parameter("mu", value=5.0), Parameter("stale_behavior", value="panic")])
+    assert listen.spin_until(batch.done, 10)
+    assert not batch.result().result.successful  # all or nothing: mu stays 0 (checked below)
     _, diag = lockstep_command(listen, [-5.0, 0.0])
     assert diag["mu"] == "0" and diag["kappa"] == "10000"
 

@@ -28,43 +28,29 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from rcl_interfaces.msg import ParameterType, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from ..core.controller import NmpcController, StepResult
 from ..core.errors import InputError, NmpcError
-from ..core.settings import RUNTIME_FIELDS
+from ..core.settings import NODE_SETTINGS, SETTINGS, NodeSettings
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.markers import RegionStore
 from ..ros.parameters import (
     LATCHED_QOS,
     STREAM_QOS,
-    ParamSpec,
     declare,
     finite_vector,
+    node_settings_specs,
     settings_from_values,
     settings_specs,
 )
 from .runner import run_node
 
-STALE_BEHAVIORS = ("hold_steady", "zero", "safe_input", "last")
-
-NODE_SPECS = [
-    ParamSpec("target", None, "initial target y_t (p values); later targets arrive on 'target' or by param set",
-              ParameterType.PARAMETER_DOUBLE_ARRAY),
-    ParamSpec("state_timeout", 1.5, "a state older than this (s, node clock) is stale: no solve, safe behaviour",
-              ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 3600.0)),
-    ParamSpec("stale_behavior", "hold_steady", "command while the state is stale or missing",
-              ParameterType.PARAMETER_STRING, choices=STALE_BEHAVIORS),
-    ParamSpec("safe_input", None, "command of stale_behavior safe_input (m values; default zeros)",
-              ParameterType.PARAMETER_DOUBLE_ARRAY),
-    ParamSpec("lockstep", False, "solve once per arriving state instead of on the timer (with a lockstep plant)",
-              ParameterType.PARAMETER_BOOL, read_only=True),
-    ParamSpec("log_throttle", 2.0, "minimum seconds between repeated warnings of one kind",
-              ParameterType.PARAMETER_DOUBLE, float_range=(0.0, 3600.0)),
-]
+#: the node's own parameters (declared in core/settings.py NodeSettings)
+NODE_SPECS = node_settings_specs()
 
 
 class ControllerNode(Node):
@@ -73,8 +59,9 @@ class ControllerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("controller", **kwargs)
         values = declare(self, settings_specs() + NODE_SPECS)
+        settings, self.options = settings_from_values(values)
         build_started = time.perf_counter()
-        self.controller = NmpcController(settings_from_values(values))  # the one NLP build
+        self.controller = NmpcController(settings)  # the one NLP build
         self.build_seconds = time.perf_counter() - build_started
         model = self.controller.model
         self.n, self.m, self.p = model.n, model.m, model.p
@@ -84,17 +71,10 @@ class ControllerNode(Node):
                                  output_frame_available=self.controller.nlp.output_frame_available)
         self.regions_revision = self.store.revision
         self.target: np.ndarray | None = None
-        if values["target"] is not None:
-            self.target = np.asarray(finite_vector(values["target"], self.p, "target"))
-        self.safe_input = np.zeros(self.m)
-        if values["safe_input"] is not None:
-            self.safe_input = np.asarray(finite_vector(values["safe_input"], self.m, "safe_input"))
-        self.state_timeout = float(values["state_timeout"])
-        self.stale_behavior = str(values["stale_behavior"])
-        if self.stale_behavior not in STALE_BEHAVIORS:
-            raise NmpcError(f"stale_behavior must be one of {STALE_BEHAVIORS}, got {self.stale_behavior!r}")
-        self.lockstep = bool(values["lockstep"])
-        self.throttle = float(values["log_throttle"])
+        if self.options.target is not None:
+            self.target = np.asarray(finite_vector(self.options.target, self.p, "target"))
+        self.safe_input = self._safe_input(self.options)
+        self.lockstep = self.options.lockstep  # read-only: fixed for the node's life
 
         self.state: np.ndarray | None = None
         self.state_time: float | None = None  # node-clock seconds of the last good state
@@ -139,7 +119,7 @@ class ControllerNode(Node):
 
     def reject(self, what: str, reason: str) -> None:
         self.counts["rejected_inputs"] += 1
-        self.get_logger().warning(f"rejected {what}: {reason}", throttle_duration_sec=self.throttle)
+        self.get_logger().warning(f"rejected {what}: {reason}", throttle_duration_sec=self.options.log_throttle)
 
     def on_state(self, msg: Float64MultiArray) -> None:
         try:
@@ -174,41 +154,32 @@ class ControllerNode(Node):
             self.reject(f"marker {ns}/{marker_id}", reason)
         if self.store.revision != revision:
             self.get_logger().info(f"obstacles received: {len(self.store)} region(s) stored",
-                                   throttle_duration_sec=self.throttle)
+                                   throttle_duration_sec=self.options.log_throttle)
 
     def on_set_parameters(self, params: list) -> SetParametersResult:
-        """Validate the whole batch; apply it only if every value is valid."""
-        changes, target = {}, None
+        """Validate the whole batch through the settings' declarations; apply it only if all is valid.
+
+        Read-only parameters never get here (ROS refuses them first); parameters not declared by
+        the settings (use_sim_time) are rclpy's own and pass through.
+        """
+        values = {param.name: param.value for param in params}
         try:
-            for param in params:
-                name, value = param.name, param.value
-                if name in RUNTIME_FIELDS:
-                    changes[name] = tuple(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") \
-                        else value
-                elif name == "target":
-                    target = np.asarray(finite_vector(value, self.p, "target"))
-                elif name == "safe_input":
-                    finite_vector(value, self.m, "safe_input")
-                elif name == "stale_behavior" and value not in STALE_BEHAVIORS:
-                    raise ValueError(f"stale_behavior must be one of {STALE_BEHAVIORS}")
-                elif name in ("state_timeout", "log_throttle") and not (math.isfinite(value) and value >= 0):
-                    raise ValueError(f"{name} must be a finite number >= 0")
-            new_settings = self.controller.checked_settings(**changes)  # ConfigError carries the reason
-        except (ValueError, TypeError) as exc:
+            settings = self.controller.checked_settings(**{k: v for k, v in values.items() if k in SETTINGS})
+            options = self.options.replace(**{k: v for k, v in values.items() if k in NODE_SETTINGS})
+            safe_input = self._safe_input(options)
+            target = None if options.target is None else np.asarray(finite_vector(options.target, self.p, "target"))
+        except ValueError as exc:  # ConfigError is a ValueError; it names the setting and the rule
             return SetParametersResult(successful=False, reason=str(exc))
-        self.controller.settings = new_settings
-        for param in params:
-            if param.name == "safe_input":
-                self.safe_input = np.asarray(param.value, float)
-            elif param.name == "stale_behavior":
-                self.stale_behavior = param.value
-            elif param.name == "state_timeout":
-                self.state_timeout = float(param.value)
-            elif param.name == "log_throttle":
-                self.throttle = float(param.value)
-        if target is not None:
+        self.controller.settings, self.options, self.safe_input = settings, options, safe_input
+        if "target" in values and target is not None:
             self.target = target
         return SetParametersResult(successful=True)
+
+    def _safe_input(self, options: NodeSettings) -> np.ndarray:
+        """The command of stale_behavior safe_input [m] (zeros when unset); ValueError for a wrong size."""
+        if options.safe_input is None:
+            return np.zeros(self.m)
+        return np.asarray(finite_vector(options.safe_input, self.m, "safe_input"))
 
     # -- the sample ----------------------------------------------------------------------------
     def on_sample(self) -> None:
@@ -219,13 +190,13 @@ class ControllerNode(Node):
             if not self.lockstep:
                 waiting = "a target" if self.target is None else "a first state"
                 level = DiagnosticStatus.ERROR if self.target is not None and now - self.started > \
-                    self.state_timeout else DiagnosticStatus.WARN
+                    self.options.state_timeout else DiagnosticStatus.WARN
                 self.publish_diagnostics(level, f"idle: waiting for {waiting}", None, 0.0)
             return
         self.state_age = now - self.state_time
-        if not self.lockstep and self.state_age > self.state_timeout:
+        if not self.lockstep and self.state_age > self.options.state_timeout:
             if self.stale_since is None:
-                self.stale_since = self.state_time + self.state_timeout  # when it became stale
+                self.stale_since = self.state_time + self.options.state_timeout  # when it became stale
                 self.counts["stale_episodes"] += 1
             self.publish_safe("state stale")
             return
@@ -272,7 +243,7 @@ class ControllerNode(Node):
 
     def publish_safe(self, why: str) -> None:
         """No solve: command the configured safe behaviour and report an ERROR (every sample)."""
-        behavior = self.stale_behavior
+        behavior = self.options.stale_behavior
         if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
             u = self.last_result.u_a
         elif behavior == "last":
@@ -286,7 +257,7 @@ class ControllerNode(Node):
         self.counts["stale"] += 1
         self.publish_diagnostics(DiagnosticStatus.ERROR, f"{why}: applying {behavior}", None, 0.0)
         self.get_logger().error(f"{why}: applying {behavior} {self.last_command.tolist()}",
-                                throttle_duration_sec=self.throttle)
+                                throttle_duration_sec=self.options.log_throttle)
 
     def publish_prediction(self, result: StepResult) -> None:
         plane = self.controller.settings.plane

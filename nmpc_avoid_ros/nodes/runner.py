@@ -10,6 +10,7 @@ import traceback
 from collections.abc import Callable
 
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -37,8 +38,8 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
     try:
         try:
             node = factory()
-        except (NmpcError, ValueError) as exc:
-            # a bad parameter: say which and why, no traceback
+        except (NmpcError, ValueError, ParameterException) as exc:
+            # a bad parameter (ours, or out of a declared ROS range or type): say which and why, no traceback
             print(f"{name}: configuration error: {exc}", file=sys.stderr)
             return 2
         # everything built at start-up (CasADi functions, the NLP, imports) moves to the permanent

@@ -1,14 +1,15 @@
-"""ROS parameters <-> core settings, and the named QoS profiles of DESIGN.md section 4.
+"""ROS parameters <-> core settings, and the named QoS profiles of docs/design.md ("Interfaces").
 
-Every parameter is declared once, with a ParameterDescriptor (description, range, read_only for
-what needs an NLP rebuild), from the core's field list and SETTING_DOCS.
+The controller's parameters are declared once, in core/settings.py (core/schema.py explains how);
+here each declaration becomes a ParamSpec: a ParameterDescriptor with the description, the
+allowed values, the range and read_only for what is not run time. The plant and the recorder
+declare their ParamSpecs directly. `markdown_table` writes any node's table for the README.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,7 +18,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..core.settings import RUNTIME_FIELDS, SETTING_DOCS, ControllerSettings
+from ..core.schema import Setting
+from ..core.settings import NODE_SETTINGS, SETTINGS, ControllerSettings, NodeSettings
 
 #: state, command, diagnostics, prediction, clock: reliable, keep last 100. A reliable writer drops
 #: samples a reader has not acknowledged once its history is full: with 10, a recorder busy for
@@ -26,8 +28,6 @@ STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, histo
 #: target and obstacles: the latest value reaches late joiners (a restarted controller)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-_NONNEGATIVE = {"kappa", "mu", "feasibility_tolerance"}
 
 
 @dataclass(frozen=True)
@@ -42,10 +42,13 @@ class ParamSpec:
     float_range: tuple[float, float] | None = None
     int_range: tuple[int, int] | None = None
     choices: tuple[str, ...] = ()
+    #: the allowed values in words, for the README (core settings: their declared rule)
+    rule: str = ""
 
     def descriptor(self) -> ParameterDescriptor:
         text = self.description + (f" (one of: {', '.join(self.choices)})" if self.choices else "")
-        d = ParameterDescriptor(name=self.name, type=self.type_, description=text, read_only=self.read_only)
+        d = ParameterDescriptor(name=self.name, type=self.type_, description=text, read_only=self.read_only,
+                                additional_constraints=self.rule)
         if self.float_range:
             d.floating_point_range = [FloatingPointRange(from_value=self.float_range[0], to_value=self.float_range[1])]
         if self.int_range:
@@ -53,44 +56,75 @@ class ParamSpec:
         return d
 
 
-def _ros_type(value: Any) -> int:
-    if isinstance(value, bool):
-        return ParameterType.PARAMETER_BOOL
-    if isinstance(value, int):
-        return ParameterType.PARAMETER_INTEGER
-    if isinstance(value, float):
-        return ParameterType.PARAMETER_DOUBLE
-    if isinstance(value, str):
-        return ParameterType.PARAMETER_STRING
-    if isinstance(value, tuple) and value and all(isinstance(v, str) for v in value):
-        return ParameterType.PARAMETER_STRING_ARRAY
-    if isinstance(value, tuple) and value and all(isinstance(v, int) for v in value):
-        return ParameterType.PARAMETER_INTEGER_ARRAY
-    if isinstance(value, tuple):
-        return ParameterType.PARAMETER_DOUBLE_ARRAY
-    raise TypeError(f"no ROS parameter type for {value!r}")
+#: ROS parameter type of each kind of setting (core/schema.py)
+ROS_TYPES = {
+    "float": ParameterType.PARAMETER_DOUBLE, "int": ParameterType.PARAMETER_INTEGER,
+    "bool": ParameterType.PARAMETER_BOOL, "str": ParameterType.PARAMETER_STRING,
+    "float[]": ParameterType.PARAMETER_DOUBLE_ARRAY, "int[]": ParameterType.PARAMETER_INTEGER_ARRAY,
+    "str[]": ParameterType.PARAMETER_STRING_ARRAY,
+}
 
 
-def settings_specs(defaults: ControllerSettings | None = None) -> list[ParamSpec]:
-    """A ParamSpec per core setting; structural ones read-only, weights ranged."""
-    defaults = defaults or ControllerSettings()
-    specs = []
-    for f in dataclasses.fields(ControllerSettings):
-        value = getattr(defaults, f.name)
-        if f.name in ("constraints",) and not value:
-            type_ = ParameterType.PARAMETER_STRING_ARRAY
-            value = None  # an empty list has no ROS type: declare typed and unset
+def spec_of(setting: Setting) -> ParamSpec:
+    """The ROS declaration of a core setting: read-only unless run time; the range of a scalar number."""
+    default = setting.default
+    if isinstance(default, tuple):
+        # an empty list has no ROS type: declare typed and unset
+        default = list(default) if default else None
+    float_range = int_range = None
+    if not setting.is_array and setting.kind in ("float", "int") and (setting.low, setting.high) != (None, None):
+        bounds = (-math.inf if setting.low is None else setting.low, math.inf if setting.high is None else setting.high)
+        if setting.kind == "float":
+            float_range = (float(bounds[0]), float(bounds[1]))
         else:
-            type_ = _ros_type(value)
-        if type_ == ParameterType.PARAMETER_DOUBLE_ARRAY:
-            value = [float(v) for v in value]
-        elif isinstance(value, tuple):
-            value = list(value)
-        specs.append(ParamSpec(
-            f.name, value, SETTING_DOCS[f.name], type_, read_only=f.name not in RUNTIME_FIELDS,
-            float_range=(0.0, 1e300) if f.name in _NONNEGATIVE else None,
-        ))
-    return specs
+            int_range = (int(bounds[0]), int(bounds[1]))
+    return ParamSpec(setting.name, default, setting.description, ROS_TYPES[setting.kind],
+                     read_only=not setting.runtime, float_range=float_range, int_range=int_range,
+                     choices=setting.choices, rule=setting.rule() if setting.constrained else "")
+
+
+def settings_specs() -> list[ParamSpec]:
+    """A ParamSpec per core controller setting, in declaration order."""
+    return [spec_of(setting) for setting in SETTINGS.values()]
+
+
+def node_settings_specs() -> list[ParamSpec]:
+    """A ParamSpec per parameter of the controller node itself (core NodeSettings)."""
+    return [spec_of(setting) for setting in NODE_SETTINGS.values()]
+
+
+def settings_from_values(values: Mapping[str, Any]) -> tuple[ControllerSettings, NodeSettings]:
+    """Core settings and node settings from declared parameter values (unset ones take the default).
+
+    ConfigError (a ValueError) names the first invalid value.
+    """
+    def pick(declared: Mapping[str, Setting]) -> dict[str, Any]:
+        return {k: v for k, v in values.items() if k in declared and v is not None}
+
+    return ControllerSettings(**pick(SETTINGS)), NodeSettings(**pick(NODE_SETTINGS))
+
+
+def markdown_table(specs: Iterable[ParamSpec]) -> str:
+    """The README's parameter table of one node: parameter, default, change, meaning."""
+    rows = ["| parameter | default | change | meaning |", "|---|---|---|---|"]
+    for spec in specs:
+        if spec.default is None:
+            default = "(unset)"
+        elif spec.default == "":
+            default = "(empty)"
+        else:
+            default = f"`{spec.default!r}`" if not isinstance(spec.default, str) else f"`{spec.default}`"
+        meaning = spec.description + "."
+        limits = spec.float_range or spec.int_range
+        if spec.rule:
+            meaning += f" Allowed: {spec.rule}."
+        elif spec.choices:
+            meaning += f" One of: {', '.join(spec.choices)}."
+        elif limits:
+            meaning += f" Range: [{limits[0]}, {limits[1]}]."
+        rows.append(f"| `{spec.name}` | {default} | {'read-only' if spec.read_only else 'run time'} | "
+                    f"{meaning.replace('|', chr(92) + '|')} |")
+    return "\n".join(rows) + "\n"
 
 
 def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]:
@@ -101,16 +135,6 @@ def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]:
         param = node.declare_parameter(spec.name, default, spec.descriptor())
         values[spec.name] = param.value
     return values
-
-
-def settings_from_values(values: dict[str, Any]) -> ControllerSettings:
-    """Core settings from declared parameter values (unset ones take the core default)."""
-    fields = {f.name for f in dataclasses.fields(ControllerSettings)}
-    kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in values.items() if k in fields and v is not None}
-    for k, v in kwargs.items():
-        if isinstance(v, tuple) and k not in ("constraints", "keep_in", "plane", "output_plane"):
-            kwargs[k] = tuple(float(x) for x in v)
-    return ControllerSettings(**kwargs)
 
 
 def finite_vector(value: Any, size: int, name: str) -> list[float]:
