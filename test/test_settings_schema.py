@@ -19,7 +19,13 @@ from nmpc_avoid_ros.core.settings import (
     ControllerSettings,
     NodeSettings,
 )
-from nmpc_avoid_ros.ros.parameters import markdown_table, settings_from_values, settings_specs, spec_of
+from nmpc_avoid_ros.ros.parameters import (
+    markdown_table,
+    node_settings_from_values,
+    settings_from_values,
+    settings_specs,
+    spec_of,
+)
 from nmpc_avoid_ros.tools.readme_tables import README, expected_tables, readme_tables
 
 
@@ -91,11 +97,11 @@ def test_values_are_normalised_and_refused_alike_from_python_yaml_and_ros():
         ControllerSettings.from_params({"horizon": 5.5})
     with pytest.raises(ConfigError, match="lockstep"):
         NodeSettings(lockstep="yes")
-    settings, options = settings_from_values({"mu": 0.0, "stale_behavior": "zero", "target": [5.0],
-                                              "constraints": None, "use_sim_time": False})
+    values = {"mu": 0.0, "stale_behavior": "zero", "target": [5.0], "constraints": None, "use_sim_time": False}
+    settings, options = settings_from_values(values), node_settings_from_values(values)
     assert settings.mu == 0.0 and options.stale_behavior == "zero" and options.target == (5.0,)
     with pytest.raises(ConfigError, match="stale_behavior"):
-        settings_from_values({"stale_behavior": "panic"})
+        node_settings_from_values({"stale_behavior": "panic"})
 
 
 def test_a_new_setting_is_one_declaration():

@@ -43,6 +43,7 @@ from ..ros.parameters import (
     STREAM_QOS,
     declare,
     finite_vector,
+    node_settings_from_values,
     node_settings_specs,
     settings_from_values,
     settings_specs,
@@ -59,9 +60,9 @@ class ControllerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("controller", **kwargs)
         values = declare(self, settings_specs() + NODE_SPECS)
-        settings, self.options = settings_from_values(values)
+        self.options = node_settings_from_values(values)
         build_started = time.perf_counter()
-        self.controller = NmpcController(settings)  # the one NLP build
+        self.controller = NmpcController(settings_from_values(values))  # the one NLP build
         self.build_seconds = time.perf_counter() - build_started
         model = self.controller.model
         self.n, self.m, self.p = model.n, model.m, model.p

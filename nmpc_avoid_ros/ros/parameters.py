@@ -93,15 +93,18 @@ def node_settings_specs() -> list[ParamSpec]:
     return [spec_of(setting) for setting in NODE_SETTINGS.values()]
 
 
-def settings_from_values(values: Mapping[str, Any]) -> tuple[ControllerSettings, NodeSettings]:
-    """Core settings and node settings from declared parameter values (unset ones take the default).
+def settings_from_values(values: Mapping[str, Any]) -> ControllerSettings:
+    """Core settings from declared parameter values (unset ones take the default; ConfigError names a bad one)."""
+    return ControllerSettings(**_declared(values, SETTINGS))
 
-    ConfigError (a ValueError) names the first invalid value.
-    """
-    def pick(declared: Mapping[str, Setting]) -> dict[str, Any]:
-        return {k: v for k, v in values.items() if k in declared and v is not None}
 
-    return ControllerSettings(**pick(SETTINGS)), NodeSettings(**pick(NODE_SETTINGS))
+def node_settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
+    """The controller node's own settings from declared parameter values (as settings_from_values)."""
+    return NodeSettings(**_declared(values, NODE_SETTINGS))
+
+
+def _declared(values: Mapping[str, Any], declared: Mapping[str, Setting]) -> dict[str, Any]:
+    return {k: v for k, v in values.items() if k in declared and v is not None}
 
 
 def markdown_table(specs: Iterable[ParamSpec]) -> str:
