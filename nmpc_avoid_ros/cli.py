@@ -20,7 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "figures": ("nmpc_avoid_ros.tools.figures", "the paper's example offline -> figures + metrics"),
     "demo": ("nmpc_avoid_ros.tools.demo", "the paper's example through ROS 2 topics -> out/"),
     "bench": ("nmpc_avoid_ros.bench.main", "solver paths vs. Opti + IPOPT and do-mpc, one process -> JSON"),
-    "campaign": ("nmpc_avoid_ros.tools.campaign", "Monte Carlo campaign over random scenarios -> JSON + plots"),
+    "campaign": ("nmpc_avoid_ros.evaluation.campaign.cli",
+                 "Monte Carlo campaign over random scenarios (local or on Dask) -> JSON + plots"),
 }
 
 

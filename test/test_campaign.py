@@ -8,21 +8,14 @@ import shutil
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.closed_loop import SETTLING_TOLERANCE
+from nmpc_avoid_ros.core.metrics import SETTLING_TOLERANCE
 from nmpc_avoid_ros.core.models import make_model
 from nmpc_avoid_ros.core.regions import Ellipse
 from nmpc_avoid_ros.core.settings import default_config_path
-from nmpc_avoid_ros.tools.campaign import (
-    JSON_NAME,
-    JSONL_NAME,
-    ReachableSet,
-    families,
-    load_settings,
-    main,
-    make_specs,
-    planar_passage,
-    vdp_passage,
-)
+from nmpc_avoid_ros.evaluation.campaign.cli import main
+from nmpc_avoid_ros.evaluation.campaign.reachability import ReachableSet, planar_passage, vdp_passage
+from nmpc_avoid_ros.evaluation.campaign.running import JSON_NAME, JSONL_NAME
+from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings, make_specs
 
 # seed 2: vdp-0004 (unreachable target -6.4) and vdp-0005 (target 0.8) have no ellipse
 SEED = "2"
@@ -134,7 +127,7 @@ def test_scenarios_are_reproducible_and_independent_of_the_count():
 def test_a_van_der_pol_config_elsewhere_keeps_the_shipped_robot_config(tmp_path):
     own = tmp_path / "my_vdp.yaml"
     own.write_text((default_config_path().parent / "van_der_pol.yaml").read_text())
-    fams = families(own)
+    fams = families({"vdp": own})
     assert fams["vdp"].config == own
     assert fams["robot"].config == default_config_path().parent / "mobile_robot.yaml"
     assert fams["robot"].config.is_file()

@@ -14,11 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import casadi as ca
 import numpy as np
 
-from ..core.closed_loop import SETTLING_TOLERANCE, settling_step
-from ..core.expressions import parse_keep_in
+from ..core.metrics import max_abs_product, outputs, penetration, time_stats, tracking
 from ..core.models import make_model
 from ..core.regions import Region
 from ..core.settings import ControllerSettings
@@ -127,45 +125,22 @@ def load_run(path: str | Path, progress: bool = False) -> RecordedRun:
 
 
 def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any]:
-    """Settling, overshoot, final error, penetration/clearance, solve-time statistics, counters."""
+    """Settling, overshoot, final error, penetration/clearance, solve-time statistics, counters
+    (definitions: core/metrics.py)."""
     model = make_model(settings.model)
     xs = run.states_with_final
-    us = np.vstack([run.u, run.u[-1:]]) if len(xs) > len(run.u) else run.u
-    out_fn = model.output
-    y = np.array([np.asarray(out_fn(x, u)).ravel() for x, u in zip(xs, us)])
+    y = outputs(model, xs, run.u)
     target = run.targets[-1]
     metrics: dict[str, Any] = {"bag": str(run.path), "finished": run.finished, "samples": len(run.x),
                                "target": target.tolist()}
     if np.all(np.isfinite(target)):
-        err = np.linalg.norm(y - target, axis=1)
-        step = settling_step(err, 0.0, SETTLING_TOLERANCE)
-        metrics["settling_step"] = step
-        metrics["settling_time"] = None if step is None else float(step * settings.sample_time)
-        metrics["final_error"] = float(err[-1])
-        start = y[0]
-        span = target - start
-        with np.errstate(divide="ignore", invalid="ignore"):
-            progress = (y - start) / np.where(np.abs(span) > 1e-12, span, np.nan)
-        metrics["overshoot"] = float(max(0.0, np.nanmax(progress) - 1.0)) if np.any(np.isfinite(progress)) else 0.0
-    # penetration: keep_in expressions (g > 0 outside the keep-in set) and obstacles (g > 0 inside)
-    xsym, usym = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
-    keep = [parse_keep_in(text, model.symbol_table(xsym, usym)).g for text in settings.keep_in]
-    keep_fn = ca.Function("g", [xsym, usym], [ca.vertcat(*keep) if keep else ca.SX(0, 1)])
-    depths = []
-    for k, (x, u) in enumerate(zip(xs, us)):
-        g = list(np.asarray(keep_fn(x, u)).ravel())
-        regions = run.regions[min(k, len(run.regions) - 1)]
-        for region in regions:
-            plane = settings.plane if region.frame == "state" else settings.output_plane
-            point = x if region.frame == "state" else y[k]
-            g.append(region.depth((point[plane[0]], point[plane[1]])))
-        depths.append(max(g) if g else -math.inf)
-    metrics["max_penetration"] = float(max(0.0, max(depths)))
-    metrics["min_clearance"] = float(-max(depths)) if math.isfinite(max(depths)) else None
+        metrics.update(tracking(y, target, settings.sample_time))
+    pen = penetration(settings, model, xs, run.u, run.regions, y)
+    metrics["max_penetration"] = pen["max_penetration"]
+    metrics["min_clearance"] = pen["min_clearance"]
     if model.n >= 2:
-        metrics["max_abs_x1x2"] = float(np.max(np.abs(xs[:, 0] * xs[:, 1])))
-    metrics["solve_ms"] = {"median": float(np.median(run.solve_ms)), "p99": float(np.percentile(run.solve_ms, 99)),
-                           "max": float(np.max(run.solve_ms))}
+        metrics["max_abs_x1x2"] = max_abs_product(xs)
+    metrics["solve_ms"] = time_stats(run.solve_ms)
     metrics["deadline_overruns"] = int(np.sum(run.solve_ms > settings.sample_time * 1e3))
     metrics["fallbacks"] = sum(s.startswith("fallback") for s in run.status)
     metrics["rejected_inputs"] = run.counters.get("rejected_inputs", 0)

@@ -30,12 +30,13 @@ from typing import Any
 
 import numpy as np
 
-from ..core.closed_loop import SETTLING_TOLERANCE, ContinuousPlant, DiscretePlant, settling_step
+from ..core.closed_loop import ClosedLoop, Stepper, Trajectory, make_plant
 from ..core.errors import NmpcError
+from ..core.metrics import max_abs_product, outputs, penetration, time_stats, tracking
 from ..core.models import Model, make_model
 from ..core.regions import Ellipse, Region
 from ..core.settings import ControllerSettings, default_config_path, load_params_file
-from .variants import OursStepper, Sample, Stepper
+from .variants import OursStepper, Sample
 
 #: the reference all quality figures are compared with: the paper's formulation as written
 REFERENCE = "opti_ipopt_paper"
@@ -131,98 +132,65 @@ def moving_obstacle_scenario(steps: int) -> Scenario:
                     np.array([8.0, 6.0]), steps, "continuous", regions)
 
 
-class _Loop:
-    """One variant's closed loop, advanced one sample at a time."""
-
-    def __init__(self, stepper: Stepper, scenario: Scenario) -> None:
-        s = scenario.settings
-        self.stepper, self.scenario = stepper, scenario
-        self.sim = (DiscretePlant(scenario.model, s.sample_time, s.discretization) if scenario.plant == "euler"
-                    else ContinuousPlant(scenario.model))
-        self.x = scenario.x0.copy()
-        self.xs, self.us, self.samples, self.in_force = [self.x], [], [], []
-        self.current: tuple[Region, ...] = ()
-
-    def advance(self, k: int) -> None:
-        new = self.scenario.regions(k) if self.scenario.regions else None
-        if new is not None:
-            self.current = tuple(new)
-        sample: Sample = self.stepper.step(self.x, self.scenario.target, new)
-        self.x = self.sim.advance(self.x, sample.u, self.scenario.settings.sample_time)
-        self.xs.append(self.x)
-        self.us.append(np.asarray(sample.u, float))
-        self.samples.append(sample)
-        self.in_force.append(self.current)
+def start_loop(stepper: Stepper, scenario: Scenario) -> ClosedLoop:
+    """The scenario's closed loop for one variant (the one driver, core/closed_loop.py)."""
+    s = scenario.settings
+    return ClosedLoop(stepper, make_plant(scenario.plant, scenario.model, s), scenario.x0, scenario.target,
+                      s.sample_time, scenario.regions)
 
 
-def _penetration(model: Model, settings: ControllerSettings, x: np.ndarray, u: np.ndarray,
-                 regions: Sequence[Region]) -> float:
-    """Largest max(0, g) of the regions at one state (ellipse g: 1 - normalised radius^2)."""
-    if not regions:
-        return 0.0
-    y = np.asarray(model.output(x, u)).ravel()
-    worst = 0.0
-    for region in regions:
-        point = x[list(settings.plane)] if region.frame == "state" else y[list(settings.output_plane)]
-        worst = max(worst, region.depth(point))
-    return worst
-
-
-def quality(loop: _Loop) -> dict[str, Any]:
-    """Settling step, final error and the avoidance figure of one run."""
-    sc, s = loop.scenario, loop.scenario.settings
-    xs, us = np.array(loop.xs), np.array(loop.us)
-    ys = np.array([np.asarray(sc.model.output(x, us[min(k, len(us) - 1)])).ravel() for k, x in enumerate(xs)])
-    error = np.linalg.norm(ys - sc.target, axis=1)
-    out: dict[str, Any] = {"settling_step": settling_step(error, 0.0, SETTLING_TOLERANCE),
-                           "final_error": float(error[-1])}
-    if sc.model.name == "van_der_pol":
-        out["max_abs_x1x2"] = float(np.max(np.abs(xs[:, 0] * xs[:, 1])))
+def quality(scenario: Scenario, run: Trajectory) -> dict[str, Any]:
+    """Settling step, final error and the avoidance figure of one run (core/metrics.py)."""
+    y = outputs(scenario.model, run.x, run.u)
+    track = tracking(y, scenario.target, scenario.settings.sample_time)
+    out: dict[str, Any] = {"settling_step": track["settling_step"], "final_error": track["final_error"]}
+    if scenario.model.name == "van_der_pol":
+        out["max_abs_x1x2"] = max_abs_product(run.x)
     else:
-        out["max_penetration"] = float(max(_penetration(sc.model, s, xs[k + 1], us[k], loop.in_force[k])
-                                           for k in range(len(us))))
+        out["max_penetration"] = penetration(scenario.settings, scenario.model, run.x, run.u, run.regions,
+                                             y)["max_penetration"]
     return out
 
 
-def record(name: str, loop: _Loop, build_s: float) -> dict[str, Any]:
+def record(name: str, scenario: Scenario, run: Trajectory, build_s: float) -> dict[str, Any]:
     """The JSON record of one variant on one scenario."""
-    times = np.array([smp.solve_time for smp in loop.samples]) * 1e3
-    iters = np.array([smp.iterations for smp in loop.samples])
-    sample_ms = loop.scenario.settings.sample_time * 1e3
+    samples: list[Sample] = run.outcomes
+    times = run.solve_time * 1e3
+    iters = run.iterations
+    sample_ms = scenario.settings.sample_time * 1e3
     return {
         "variant": name,
-        "scenario": loop.scenario.name,
-        "horizon": loop.scenario.settings.horizon,
+        "scenario": scenario.name,
+        "horizon": scenario.settings.horizon,
         "samples": len(times),
         "build_s": round(build_s, 3),
-        "solve_ms": {"median": float(np.median(times)), "p90": float(np.percentile(times, 90)),
-                     "p99": float(np.percentile(times, 99)), "max": float(np.max(times)),
+        "solve_ms": {**time_stats(times, (90, 99)),
                      # sample 0 is a cold start (no previous plan): the tail of the warm samples alone
                      "p99_warm": float(np.percentile(times[1:], 99)) if times.size > 1 else float(times[0]),
                      "max_warm": float(np.max(times[1:])) if times.size > 1 else float(times[0])},
         "iterations": {"median": float(np.median(iters)), "max": int(np.max(iters))},
-        "failures": int(sum(smp.failed for smp in loop.samples)),
-        "fallbacks": int(sum(smp.fallback for smp in loop.samples)),
-        "budget_cut": int(sum(smp.budget_exhausted for smp in loop.samples)),
+        "failures": int(sum(smp.failed for smp in samples)),
+        "fallbacks": int(sum(smp.fallback for smp in samples)),
+        "budget_cut": int(sum(smp.budget_exhausted for smp in samples)),
         "missed_samples": int(np.sum(times > sample_ms)),
-        **quality(loop),
+        **quality(scenario, run),
     }
 
 
 def run_scenario(scenario: Scenario, factories: dict[str, Callable], progress: Callable[[str], None]) -> list[dict]:
     """All variants on one scenario, interleaved per sample; records with the reference's quality."""
-    loops: dict[str, _Loop] = {}
+    loops: dict[str, ClosedLoop] = {}
     builds: dict[str, float] = {}
     for name, factory in factories.items():
         if name in scenario.skip:
             continue
         start = time.perf_counter()
-        loops[name] = _Loop(factory(scenario.settings, scenario.model), scenario)
+        loops[name] = start_loop(factory(scenario.settings, scenario.model), scenario)
         builds[name] = time.perf_counter() - start
-    for k in range(scenario.steps):
+    for _ in range(scenario.steps):
         for loop in loops.values():
-            loop.advance(k)
-    records = [record(name, loop, builds[name]) for name, loop in loops.items()]
+            loop.advance()
+    records = [record(name, scenario, loop.trajectory(), builds[name]) for name, loop in loops.items()]
     ref = next((r for r in records if r["variant"] == REFERENCE), None)
     for r in records:
         if ref is not None:

@@ -1,19 +1,19 @@
-"""What a benchmark variant is: something that, given a measured state, returns a command.
+"""What a benchmark variant is: a `Stepper` (core/closed_loop.py) that answers with a `Sample`.
 
 Every variant (our controller with any solver path, the paper's Opti + IPOPT formulation,
-do-mpc) is driven through the same `Stepper` protocol by the same closed loop
-(`run_variant`), so their solve times and closed-loop quality are comparable sample by sample.
+do-mpc) is driven by the one closed-loop driver (`core.closed_loop.ClosedLoop`), the same one
+`simulate`, `campaign` and the tests use, so their solve times and closed-loop quality are
+comparable sample by sample.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import Protocol
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.closed_loop import ContinuousPlant, DiscretePlant
+from ..core.closed_loop import Stepper
 from ..core.controller import NmpcController
 from ..core.models import Model
 from ..core.regions import Region
@@ -22,7 +22,7 @@ from ..core.settings import ControllerSettings
 
 @dataclass
 class Sample:
-    """One sample of a variant.
+    """One sample of a variant (a core.closed_loop.StepOutcome).
 
     Attributes:
         u: command applied [m].
@@ -41,20 +41,12 @@ class Sample:
     budget_exhausted: bool = False
 
 
-class Stepper(Protocol):
-    """A controller under test. Built once per scenario (building is not timed)."""
-
-    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None) -> Sample:
-        """Command for the measured state x [n] and target y_t [p]; regions replace the current set if not None."""
-        ...
-
-
-#: a factory builds a fresh stepper for (settings, model); variants are named factories
+#: a factory builds a fresh stepper (answering with Samples) for (settings, model); variants are named factories
 StepperFactory = Callable[[ControllerSettings, Model], Stepper]
 
 
 class OursStepper:
-    """Our NmpcController (any solver path of the settings) as a Stepper."""
+    """Our NmpcController (any solver path of the settings) as a Stepper answering with Samples."""
 
     def __init__(self, settings: ControllerSettings, model: Model | None = None) -> None:
         self.controller = NmpcController(settings, model)
@@ -63,52 +55,3 @@ class OursStepper:
         res = self.controller.step(x, y_t, regions)
         return Sample(res.u, res.solve_time, res.iterations, failed=res.status not in ("ok", "truncated"),
                       fallback=res.is_fallback, budget_exhausted=res.budget_exhausted)
-
-
-@dataclass
-class VariantRun:
-    """A closed loop of one variant: x [K+1, n], u [K, m], per-sample solve time (s) and iterations."""
-
-    x: np.ndarray
-    u: np.ndarray
-    targets: np.ndarray
-    solve_time: np.ndarray
-    iterations: np.ndarray
-    failed: np.ndarray
-    fallback: np.ndarray
-    budget_exhausted: np.ndarray
-    regions: list[tuple[Region, ...]] = field(default_factory=list)
-
-
-def run_variant(stepper: Stepper, model: Model, settings: ControllerSettings, x0: Sequence[float],
-                target: Sequence[float], steps: int, plant: str = "euler",
-                regions: Callable[[int], Sequence[Region] | None] | None = None) -> VariantRun:
-    """Closed loop of `steps` samples with the 'euler' (prediction model) or 'continuous' plant.
-
-    `regions(k)` gives the region set of sample k (None keeps the current one); the set in force
-    at each sample is kept in the result for the quality figures.
-    """
-    if plant == "euler":
-        sim = DiscretePlant(model, settings.sample_time, settings.discretization)
-    else:
-        sim = ContinuousPlant(model)
-    x = np.asarray(x0, float)
-    y_t = np.asarray(target, float)
-    xs, us, times, iters, failed, fallback, cut, in_force = [x], [], [], [], [], [], [], []
-    current: tuple[Region, ...] = ()
-    for k in range(steps):
-        new = regions(k) if regions else None
-        if new is not None:
-            current = tuple(new)
-        sample = stepper.step(x, y_t, new)
-        x = sim.advance(x, sample.u, settings.sample_time)
-        xs.append(x)
-        us.append(np.asarray(sample.u, float))
-        times.append(sample.solve_time)
-        iters.append(sample.iterations)
-        failed.append(sample.failed)
-        fallback.append(sample.fallback)
-        cut.append(sample.budget_exhausted)
-        in_force.append(current)
-    return VariantRun(np.array(xs), np.array(us), np.tile(y_t, (steps, 1)), np.array(times), np.array(iters),
-                      np.array(failed), np.array(fallback), np.array(cut), in_force)

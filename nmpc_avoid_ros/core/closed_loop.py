@@ -1,7 +1,13 @@
-"""Plants and the offline closed loop.
+"""Plants and the one offline closed-loop driver.
 
 Two plants: the prediction model itself (the paper's Euler map), and the continuous dynamics
 integrated accurately (scipy DOP853, rtol 1e-10) under zero-order hold of the command.
+
+The driver (`ClosedLoop`, `drive`) runs any `Stepper` -- something whose `step(x, y_t, regions)`
+returns an outcome with `u`, `solve_time` and `iterations` -- against a plant: NmpcController
+itself, the benchmark's peers (Opti + IPOPT, do-mpc), anything else. `simulate`, `bench`,
+`campaign` and the tests all drive their loops through it; `run_closed_loop` is the
+controller-specific wrapper that also collects the controller's diagnostics.
 """
 
 from __future__ import annotations
@@ -9,18 +15,24 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.integrate import solve_ivp
 
 from .controller import NmpcController, StepResult
 from .errors import ConfigError
+from .metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
 from .models import Model
 from .regions import Region
+from .settings import ControllerSettings
+
+#: the metrics' old home: kept importable from here for existing callers
+__all__ = ["PLANTS", "SETTLING_TOLERANCE", "ClosedLoop", "ClosedLoopRun", "ContinuousPlant", "DiscretePlant",
+           "Plant", "StepOutcome", "Stepper", "Trajectory", "drive", "make_plant", "max_abs_product",
+           "run_closed_loop", "settling_step"]
 
 PLANTS = ("euler", "continuous")
-#: settled: |y - y_t| below this from some sample on, for good (the paper scenario's criterion)
-SETTLING_TOLERANCE = 0.05
 
 
 class ContinuousPlant:
@@ -58,14 +70,144 @@ class DiscretePlant:
         return np.asarray(self._f(x, u)).ravel()
 
 
-def make_plant(kind: str, controller: NmpcController) -> ContinuousPlant | DiscretePlant:
-    """'euler' -> the controller's own prediction model; 'continuous' -> accurate ZOH integration."""
-    s = controller.settings
+def make_plant(kind: str, model: Model, settings: ControllerSettings) -> Plant:
+    """'euler' -> the prediction model's own discrete map (settings' discretisation); 'continuous' ->
+    accurate ZOH integration."""
     if kind == "euler":
-        return DiscretePlant(controller.model, s.sample_time, s.discretization)
+        return DiscretePlant(model, settings.sample_time, settings.discretization)
     if kind == "continuous":
-        return ContinuousPlant(controller.model)
+        return ContinuousPlant(model)
     raise ConfigError(f"plant must be one of {PLANTS}, got {kind!r}")
+
+
+class Plant(Protocol):
+    def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        """State [n] after holding u [m] for dt s from x [n]."""
+        ...
+
+
+class StepOutcome(Protocol):
+    """What the driver reads of a stepper's answer (NmpcController's StepResult, bench's Sample)."""
+
+    u: np.ndarray  # command to apply [m]
+    solve_time: float  # s
+    iterations: int
+
+
+class Stepper(Protocol):
+    """A controller in the loop (NmpcController, a benchmark peer): built once, then stepped."""
+
+    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None) -> StepOutcome:
+        """Command for the measured state x [n] and target y_t [p]; regions replace the current set if not None."""
+        ...
+
+
+#: the target of sample k: fixed [p], or a function of k
+TargetSchedule = Sequence[float] | Callable[[int], Sequence[float]]
+#: the region set of sample k; None keeps the set in force
+RegionSchedule = Callable[[int], Sequence[Region] | None]
+
+
+@dataclass
+class Trajectory:
+    """What the driver recorded over K samples.
+
+    Attributes: x [K+1, n] the states solved on plus the state after the last sample; u [K, m];
+    targets [K, p]; regions [K] the set in force at each sample; outcomes [K] the stepper's
+    answers; sample_time s; stopped: why the loop ended before its last sample (None if it did
+    not), in which case the trajectory ends at the last state the stepper solved on.
+    """
+
+    x: np.ndarray
+    u: np.ndarray
+    targets: np.ndarray
+    regions: list[tuple[Region, ...]]
+    outcomes: list[Any]
+    sample_time: float
+    stopped: str | None = None
+
+    @property
+    def solve_time(self) -> np.ndarray:
+        return np.array([o.solve_time for o in self.outcomes], float)
+
+    @property
+    def iterations(self) -> np.ndarray:
+        return np.array([o.iterations for o in self.outcomes], int)
+
+
+class ClosedLoop:
+    """One stepper against one plant, advanced one sample at a time (measure, solve, hold u for Ts).
+
+    `advance()` lets several loops run interleaved sample by sample (the benchmark does, so that a
+    burst of load hits every variant alike); `run(steps)` runs them in one go.
+    """
+
+    def __init__(self, stepper: Stepper, plant: Plant, x0: Sequence[float], target: TargetSchedule,
+                 sample_time: float, regions: RegionSchedule | None = None,
+                 on_step: Callable[[int, Any], None] | None = None) -> None:
+        x = np.asarray(x0, float).ravel()
+        if not np.all(np.isfinite(x)):
+            raise ConfigError(f"x0 must be finite numbers, got {list(x0)}")
+        self.stepper, self.plant, self.sample_time = stepper, plant, sample_time
+        self.target, self.regions, self.on_step = target, regions, on_step
+        self._xs, self._us, self._targets, self._in_force, self._outcomes = [x], [], [], [], []
+        self._current: tuple[Region, ...] = ()
+        self._solved = 0
+        self.stopped: str | None = None
+
+    @property
+    def k(self) -> int:
+        """Samples completed."""
+        return len(self._us)
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._xs[-1]
+
+    def advance(self) -> Any:
+        """Solve on the current state and advance the plant one sample; returns the outcome."""
+        k = self.k
+        y_t = np.asarray(self.target(k) if callable(self.target) else self.target, float)
+        new = self.regions(k) if self.regions else None
+        if new is not None:
+            self._current = tuple(new)
+        outcome = self.stepper.step(self.x, y_t, new)
+        self._solved += 1
+        if self.on_step:
+            self.on_step(k, outcome)
+        x = self.plant.advance(self.x, outcome.u, self.sample_time)
+        self._xs.append(x)
+        self._us.append(np.asarray(outcome.u, float))
+        self._targets.append(y_t)
+        self._in_force.append(self._current)
+        self._outcomes.append(outcome)
+        return outcome
+
+    def run(self, steps: int, stop_on: tuple[type[BaseException], ...] = ()) -> Trajectory:
+        """Advance `steps` samples; an exception of a `stop_on` type ends the loop early (see Trajectory)."""
+        if steps < 1:
+            raise ConfigError(f"steps must be >= 1, got {steps}")
+        for _ in range(steps):
+            try:
+                self.advance()
+            except stop_on as exc:
+                self.stopped = f"{type(exc).__name__} at sample {self._solved}: {exc}"
+                break
+        return self.trajectory()
+
+    def trajectory(self) -> Trajectory:
+        """The samples so far; after a stop, up to the last state the stepper solved on."""
+        K = self.k if self.stopped is None else min(self.k, self._solved - 1)
+        return Trajectory(np.array(self._xs[:K + 1]), np.array(self._us[:K]).reshape(K, -1),
+                          np.array(self._targets[:K]).reshape(K, -1), self._in_force[:K], self._outcomes[:K],
+                          self.sample_time, self.stopped)
+
+
+def drive(stepper: Stepper, plant: Plant, x0: Sequence[float], target: TargetSchedule, steps: int,
+          sample_time: float, regions: RegionSchedule | None = None,
+          stop_on: tuple[type[BaseException], ...] = ()) -> Trajectory:
+    """`steps` samples of `stepper` against `plant` (see ClosedLoop)."""
+    return ClosedLoop(stepper, plant, x0, target, sample_time, regions).run(steps, stop_on)
 
 
 @dataclass
@@ -83,6 +225,18 @@ class ClosedLoopRun:
     costs: np.ndarray  # [K, 3]: V_o, V_a, tracking
     sample_time: float
     info: dict = field(default_factory=dict)
+    regions: list[tuple[Region, ...]] = field(default_factory=list)  # [K] the set in force at each sample
+    stopped: str | None = None  # why the loop ended early (see Trajectory), None if it ran every sample
+
+    @classmethod
+    def from_trajectory(cls, run: Trajectory, info: dict | None = None) -> ClosedLoopRun:
+        """The controller's view of a driven trajectory whose outcomes are StepResults."""
+        res = run.outcomes
+        K = len(res)
+        return cls(run.x, run.u, np.array([r.y_a for r in res]).reshape(K, -1), run.targets, run.solve_time,
+                   run.iterations, [r.status for r in res], [r.solver_status for r in res],
+                   np.array([(r.offset_cost, r.avoidance_cost, r.tracking_cost) for r in res]).reshape(K, 3),
+                   run.sample_time, dict(info or {}), run.regions, run.stopped)
 
     def to_json(self) -> dict:
         """The JSON layout of `simulate --json` (lists of rows, solve time in ms)."""
@@ -105,58 +259,22 @@ class ClosedLoopRun:
 def run_closed_loop(
     controller: NmpcController,
     x0: Sequence[float],
-    target: Sequence[float] | Callable[[int], Sequence[float]],
+    target: TargetSchedule,
     steps: int,
     plant: str = "euler",
-    regions: Callable[[int], Sequence[Region] | None] | None = None,
+    regions: RegionSchedule | None = None,
     on_step: Callable[[int, StepResult], None] | None = None,
+    stop_on: tuple[type[BaseException], ...] = (),
 ) -> ClosedLoopRun:
-    """Run `steps` samples: measure, solve, apply u under ZOH for one sample time.
+    """`steps` samples of the controller against the named plant ('euler' or 'continuous').
 
     `target` and `regions` may be functions of the step index (a schedule); a regions function
-    returning None keeps the current set.
+    returning None keeps the current set. `stop_on`: see ClosedLoop.run.
     """
-    if steps < 1:
-        raise ConfigError(f"steps must be >= 1, got {steps}")
-    sim = make_plant(plant, controller)
-    dt = controller.settings.sample_time
-    model = controller.model
     x = np.asarray(x0, float).ravel()
-    if x.size != model.n or not np.all(np.isfinite(x)):
-        raise ConfigError(f"x0 must be {model.n} finite numbers, got {list(x0)}")
-    xs = [x]
-    us, yas, targets, times, iters, statuses, solver_statuses, costs = [], [], [], [], [], [], [], []
-    for k in range(steps):
-        y_t = np.asarray(target(k) if callable(target) else target, float)
-        res = controller.step(x, y_t, regions(k) if regions else None)
-        if on_step:
-            on_step(k, res)
-        x = sim.advance(x, res.u, dt)
-        xs.append(x)
-        us.append(res.u)
-        yas.append(res.y_a)
-        targets.append(y_t)
-        times.append(res.solve_time)
-        iters.append(res.iterations)
-        statuses.append(res.status)
-        solver_statuses.append(res.solver_status)
-        costs.append((res.offset_cost, res.avoidance_cost, res.tracking_cost))
-    return ClosedLoopRun(np.array(xs), np.array(us), np.array(yas), np.array(targets), np.array(times),
-                         np.array(iters), statuses, solver_statuses, np.array(costs), dt,
-                         {"plant": plant, "nlp_builds": controller.nlp_builds})
-
-
-def settling_step(values: np.ndarray, reference: float, tolerance: float) -> int | None:
-    """First index from which |values - reference| < tolerance for good (None if never)."""
-    inside = np.abs(np.asarray(values, float) - reference) < tolerance
-    if not inside[-1]:
-        return None
-    outside = np.flatnonzero(~inside)
-    return 0 if outside.size == 0 else int(outside[-1] + 1)
-
-
-def max_abs_product(x: np.ndarray) -> float:
-    """max |x1 x2| over a state trajectory [K, n] (the paper's energy-rate measure)."""
-    return float(np.max(np.abs(x[:, 0] * x[:, 1])))
-
-
+    if x.size != controller.model.n or not np.all(np.isfinite(x)):
+        raise ConfigError(f"x0 must be {controller.model.n} finite numbers, got {list(x0)}")
+    sim = make_plant(plant, controller.model, controller.settings)
+    loop = ClosedLoop(controller, sim, x, target, controller.settings.sample_time, regions, on_step)
+    return ClosedLoopRun.from_trajectory(loop.run(steps, stop_on),
+                                         {"plant": plant, "nlp_builds": controller.nlp_builds})

@@ -74,7 +74,7 @@ class Ellipse:
 
     def depth(self, point: Sequence[float]) -> float:
         """g at a point of the plane: 1 - normalised squared radius (> 0 inside)."""
-        return float(_ellipse_g(np.asarray(point, float), self.slot_values()))
+        return float(ellipse_g(np.asarray(point, float), self.slot_values()))
 
 
 @dataclass(frozen=True)
@@ -159,7 +159,7 @@ def polygon_slot_size(max_vertices: int) -> int:
     return POLYGON_SLOT_HEADER + 3 * max_vertices
 
 
-def _ellipse_g(point, slot):
+def ellipse_g(point, slot):
     """g of an ellipse slot at a 2-d point (numpy or CasADi), > 0 inside."""
     dx = point[0] - slot[2]
     dy = point[1] - slot[3]
@@ -176,7 +176,7 @@ def _plane_point(state_point, output_point, slot):
 
 def ellipse_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX) -> ca.MX:
     """active * g of one ellipse slot; its penalty F is max(0, active * g)^2."""
-    return slot[0] * _ellipse_g(_plane_point(state_point, output_point, slot), slot)
+    return slot[0] * ellipse_g(_plane_point(state_point, output_point, slot), slot)
 
 
 def polygon_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX, max_vertices: int) -> ca.MX:

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.closed_loop import SETTLING_TOLERANCE, settling_step
 from ..core.errors import NmpcError
+from ..core.metrics import SETTLING_TOLERANCE, settling_step
 from ..core.settings import default_config_path
 from .analyze import analyze
 from .processes import NodeProcess

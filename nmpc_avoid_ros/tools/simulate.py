@@ -15,9 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from ..core.closed_loop import PLANTS, SETTLING_TOLERANCE, ClosedLoopRun, run_closed_loop, settling_step
+from ..core.closed_loop import PLANTS, ClosedLoopRun, run_closed_loop
 from ..core.controller import NmpcController
 from ..core.errors import NmpcError
+from ..core.metrics import max_abs_product, outputs, tracking
+from ..core.models import Model
 from ..core.settings import SOLVER_PATHS, ControllerSettings, default_config_path, load_params_file
 
 
@@ -59,13 +61,14 @@ def load_scenario(config: str | Path | None, **overrides: Any) -> Scenario:
     )
 
 
-def summarize(run: ClosedLoopRun, target: list[float]) -> dict[str, Any]:
-    """Settling step (|y - y_t| < 0.05 for good, on the first output), max |x1 x2|, solve times."""
+def summarize(run: ClosedLoopRun, target: list[float], model: Model) -> dict[str, Any]:
+    """Settling step (|y - y_t| < 0.05 for good), final error, max |x1 x2|, solve times (core/metrics.py)."""
     x = run.x
+    quality = tracking(outputs(model, x, run.u), target, run.sample_time)
     summary: dict[str, Any] = {
         "steps": len(run.u),
-        "settling_step": settling_step(x[:, 0], target[0], SETTLING_TOLERANCE),
-        "final_error": float(abs(x[-1, 0] - target[0])),
+        "settling_step": quality["settling_step"],
+        "final_error": quality["final_error"],
         "solve_ms_median": float(np.median(run.solve_time) * 1e3),
         "solve_ms_max": float(np.max(run.solve_time) * 1e3),
         "fallbacks": sum(s.startswith("fallback") for s in run.status),
@@ -73,7 +76,7 @@ def summarize(run: ClosedLoopRun, target: list[float]) -> dict[str, Any]:
         "nlp_builds": run.info.get("nlp_builds"),
     }
     if x.shape[1] >= 2:
-        summary["max_abs_x1x2"] = float(np.max(np.abs(x[:, 0] * x[:, 1])))
+        summary["max_abs_x1x2"] = max_abs_product(x)
     return summary
 
 
@@ -81,7 +84,7 @@ def simulate(scenario: Scenario) -> tuple[ClosedLoopRun, dict[str, Any]]:
     """Run the scenario's closed loop; returns the run and its summary."""
     controller = NmpcController(scenario.settings)
     run = run_closed_loop(controller, scenario.x0, scenario.target, scenario.steps, scenario.plant)
-    return run, summarize(run, scenario.target)
+    return run, summarize(run, scenario.target, controller.model)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,6 +1,6 @@
 """Summary plots of a campaign (matplotlib, Agg): errors, penetration, solve times, examples.
 
-Reads the per-scenario records of `campaign.jsonl` (with their traces); see tools/campaign.py.
+Reads the per-scenario records of `campaign.jsonl` (with their traces); see evaluation/campaign/.
 """
 
 from __future__ import annotations
@@ -12,12 +12,13 @@ from typing import Any
 
 import numpy as np
 
-from ..bag.figures import draw_region, plt, shade_product_region
-from ..core.closed_loop import SETTLING_TOLERANCE
-from ..core.regions import Ellipse
-from ..core.settings import ControllerSettings, load_params_file
+from ...bag.figures import draw_region, plt, shade_product_region
+from ...core.metrics import SETTLING_TOLERANCE
+from ...core.regions import Region
+from ...core.settings import ControllerSettings, load_params_file
+from .scenarios import FAMILIES, spec_ellipses
 
-FAMILY_TITLES = {"vdp": "van der Pol", "robot": "mobile robot"}
+FAMILY_TITLES = {f.key: f.title for f in FAMILIES}
 OUTCOMES = (("converged", "tab:green"), ("stop short", "tab:orange"), ("not at rest", "tab:red"),
             ("other", "tab:gray"))
 
@@ -114,8 +115,8 @@ def solve_time_plot(records: Sequence[Mapping[str, Any]], settings: Mapping[str,
     return _save(fig, path)
 
 
-def _regions(rec: Mapping[str, Any]) -> list[Ellipse]:
-    return [Ellipse(tuple(e["center"]), tuple(e["semi_axes"]), e["yaw"], e["frame"]) for e in rec["spec"]["ellipses"]]
+def _regions(rec: Mapping[str, Any]) -> list[Region]:
+    return spec_ellipses(rec["spec"])
 
 
 EXAMPLE_PICKS: tuple[tuple[str, Callable[[Mapping[str, Any]], bool]], ...] = (

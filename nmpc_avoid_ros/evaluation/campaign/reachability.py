@@ -1,0 +1,169 @@
+"""Reachability of a campaign target: Y_r, the best reachable and admissible points, passages.
+
+* best reachable point y*: the projection of y_t onto Y_r, the outputs of steady states in
+  lambda * Z (paper eq. 4-5), by a small IPOPT problem min |y - y_t|^2 s.t. (g_x(y), g_u(y)) in
+  lambda * Z (box and hard constraints); the target is reachable iff |y* - y_t| < 1e-6.
+* best admissible point y~: the point of Y_r nearest to y_t whose steady state is outside every
+  region (ellipses and keep-in expressions); y* unless a region covers y*'s steady state, else
+  found on a grid over Y_r (1e-3 in 1-d; 0.05 then refined to 0.002 in 2-d).
+* passage: is there an admissible way from where a run stopped to y~ (van der Pol: an x1-slice
+  corridor with x2 of the right sign; planar outputs: a connected free path on a 5 cm grid)?
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import casadi as ca
+import numpy as np
+
+from ...core.errors import ConfigError
+from ...core.expressions import parse_keep_in
+from ...core.metrics import region_depth
+from ...core.models import Model
+from ...core.regions import Region
+from ...core.settings import ControllerSettings
+
+#: numerical slack of the lambda * Z test of a candidate steady state (the projection's accuracy)
+ADMISSIBLE_SLACK = 1e-6
+
+
+class ReachableSet:
+    """Y_r of one configuration (steady outputs with (x_s, u_s) in lambda * Z, paper eq. 4-5).
+
+    Needs the model's closed-form steady-state maps g_x, g_u (both campaign models have them).
+    """
+
+    def __init__(self, settings: ControllerSettings, model: Model) -> None:
+        if model.steady_state is None:
+            raise ConfigError(f"campaign: model {model.name} has no closed-form steady state")
+        self.settings, self.model = settings, model
+        lam = settings.steady_state_scale
+        y = ca.SX.sym("y", model.p)
+        xs, us = (ca.vertcat(v) for v in model.steady_state(y))
+        self.steady = ca.Function("steady", [y], [xs, us])
+        xsym, usym = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
+        table = model.symbol_table(xsym, usym)
+        hard = [parse_keep_in(t, table).g for t in settings.constraints]
+        keep = [parse_keep_in(t, table).g for t in settings.keep_in]
+        self.hard = ca.Function("hard", [xsym, usym], [ca.vertcat(*hard) if hard else ca.SX(0, 1)])
+        self.keep = ca.Function("keep", [xsym, usym], [ca.vertcat(*keep) if keep else ca.SX(0, 1)])
+        self.lo = lam * np.array([*settings.state_min, *settings.input_min], float)
+        self.hi = lam * np.array([*settings.state_max, *settings.input_max], float)
+        y_t = ca.SX.sym("y_t", model.p)
+        g = [ca.vertcat(xs, us)]
+        lbg, ubg = list(self.lo), list(self.hi)
+        if hard:
+            g.append(self.hard(xs / lam, us / lam))
+            lbg += [-np.inf] * len(hard)
+            ubg += [0.0] * len(hard)
+        nlp = {"x": y, "p": y_t, "f": ca.sumsqr(y - y_t), "g": ca.vertcat(*g)}
+        self._proj = ca.nlpsol("projection", "ipopt", nlp, {"print_time": False, "ipopt": {
+            "print_level": 0, "sb": "yes", "tol": 1e-12, "bound_relax_factor": 0.0}})
+        self._lbg, self._ubg = np.array(lbg), np.array(ubg)
+        self.box = self._output_box()
+
+    def project(self, y_t: Sequence[float]) -> np.ndarray:
+        """y* [p]: the point of Y_r nearest to y_t (Euclidean)."""
+        y_t = np.asarray(y_t, float)
+        sol = self._proj(x0=y_t, p=y_t, lbg=self._lbg, ubg=self._ubg)
+        return np.asarray(sol["x"]).ravel()
+
+    def _output_box(self) -> np.ndarray:
+        """[p, 2] bounds of Y_r (projections of far-away points along each axis)."""
+        far = 1e4
+        box = np.zeros((self.model.p, 2))
+        for i in range(self.model.p):
+            for j, sign in enumerate((-1.0, 1.0)):
+                y = np.zeros(self.model.p)
+                y[i] = sign * far
+                box[i, j] = self.project(y)[i]
+        return box
+
+    def admissible(self, Y: np.ndarray, regions: Sequence[Region]) -> np.ndarray:
+        """For candidate outputs Y [K, p]: steady state in lambda * Z and outside every region [K] bool."""
+        Y = np.atleast_2d(np.asarray(Y, float))
+        K = len(Y)
+        xs, us = (np.asarray(v).reshape(-1, K) for v in self.steady.map(K)(Y.T))
+        z = np.vstack([xs, us])
+        ok = np.all((z >= self.lo[:, None] - ADMISSIBLE_SLACK) & (z <= self.hi[:, None] + ADMISSIBLE_SLACK), axis=0)
+        lam = self.settings.steady_state_scale
+        if self.hard.size1_out(0):
+            ok &= np.all(np.asarray(self.hard.map(K)(xs / lam, us / lam)).reshape(-1, K) <= ADMISSIBLE_SLACK, axis=0)
+        if self.keep.size1_out(0):
+            ok &= np.all(np.asarray(self.keep.map(K)(xs, us)).reshape(-1, K) <= 0, axis=0)
+        s = self.settings
+        for region in regions:
+            plane, source = (s.plane, xs) if region.frame == "state" else (s.output_plane, Y.T)
+            point = np.vstack([source[plane[0]], source[plane[1]]])
+            ok &= region_depth(region, point) <= 0
+        return ok
+
+    def best_admissible(self, y_t: Sequence[float], y_star: np.ndarray, regions: Sequence[Region]) -> np.ndarray:
+        """y~ [p]: nearest to y_t among admissible outputs (y* itself when admissible)."""
+        y_t = np.asarray(y_t, float)
+        if self.admissible(y_star[None, :], regions)[0]:
+            return y_star
+        p = self.model.p
+        if p == 1:
+            grid = np.arange(self.box[0, 0], self.box[0, 1] + 5e-4, 1e-3)[:, None]
+            return self._nearest(grid, y_t, regions)
+        if p == 2:
+            axes = [np.arange(lo, hi + 0.025, 0.05) for lo, hi in self.box]
+            grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
+            coarse = self._nearest(grid, y_t, regions)
+            if not np.all(np.isfinite(coarse)):
+                return coarse
+            fine = [np.clip(np.arange(c - 0.1, c + 0.1 + 1e-3, 0.002), lo, hi)
+                    for c, (lo, hi) in zip(coarse, self.box)]
+            grid = np.stack(np.meshgrid(*fine, indexing="ij"), -1).reshape(-1, 2)
+            return self._nearest(grid, y_t, regions)
+        raise ConfigError(f"campaign: best admissible point for {p}-d outputs is not implemented")
+
+    def _nearest(self, grid: np.ndarray, y_t: np.ndarray, regions: Sequence[Region]) -> np.ndarray:
+        ok = self.admissible(grid, regions)
+        if not np.any(ok):
+            return np.full(self.model.p, np.nan)
+        cand = grid[ok]
+        return cand[np.argmin(np.linalg.norm(cand - y_t, axis=1))]
+
+
+def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]) -> bool:
+    """Is there an admissible corridor in the (x1, x2) plane from x1 = x_end[0] to x1 = y_goal?
+
+    Moving x1 right needs x2 > 0 (left: x2 < 0), with |x2| <= 2 and |x1 x2| <= 2. The corridor is
+    open when every x1 slice (step 0.01) between the two has such an x2 outside all ellipses
+    (continuous-time reasoning; an Euler step could jump a thin slice).
+    """
+    a, b = float(x_end[0]), float(y_goal[0])
+    if abs(b - a) < 1e-9:
+        return True
+    sign = 1.0 if b > a else -1.0
+    x1 = np.linspace(a, b, max(2, int(abs(b - a) / 0.01) + 1))
+    frac = np.linspace(1e-3, 1.0, 200)
+    X1 = np.repeat(x1, frac.size)
+    X2 = sign * np.tile(frac, x1.size) * np.repeat(np.minimum(2.0, 2.0 / np.maximum(np.abs(x1), 1e-9)), frac.size)
+    free = np.ones(X1.size, bool)
+    for region in regions:
+        free &= region_depth(region, np.vstack([X1, X2])) <= 0
+    return bool(np.all(free.reshape(x1.size, frac.size).any(axis=1)))
+
+
+def planar_passage(y_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region], half_width: float = 10.0,
+                   cell: float = 0.05) -> bool:
+    """Are y_end and y_goal in one connected component of the free plane [-w, w]^2 minus ellipses?"""
+    from scipy.ndimage import label
+
+    axis = np.arange(-half_width, half_width + cell / 2, cell)
+    PX, PY = np.meshgrid(axis, axis, indexing="ij")
+    free = np.ones(PX.shape, bool)
+    for region in regions:
+        free &= (region_depth(region, np.vstack([PX.ravel(), PY.ravel()])) <= 0).reshape(PX.shape)
+    labels, _ = label(free)
+
+    def cell_of(pt: np.ndarray) -> tuple[int, int]:
+        i, j = (int(np.clip(round((c + half_width) / cell), 0, axis.size - 1)) for c in pt[:2])
+        return i, j
+
+    a, b = labels[cell_of(y_end)], labels[cell_of(y_goal)]
+    return bool(a and b and a == b)

@@ -1,0 +1,175 @@
+"""Campaign scenario families: what a scenario is and how each family draws its scenarios.
+
+A scenario is a JSON-ready dict (its "spec"): id '<family>-<index>', family, index, config (the
+params file), steps, plant, x0 [n], target [p], ellipses (list of {center, semi_axes, yaw,
+frame}) and whatever else its family's generator adds. Each scenario is drawn from its own
+generator seeded by (seed, family code, index), so it never depends on how many others there
+are, which ran before, or where it runs.
+
+Adding a family is one entry in FAMILIES: a key (the id prefix and the command-line name:
+`--<key> N`, `--<key>-steps`, `--<key>-config`), a seed code never used before, the shipped
+params file, defaults, a generator `(rng, settings, model) -> spec fields`, the passage test
+the scoring uses to name the cause of a stop short, and, for regions that change during the
+run, a `schedule` turning the spec into the region set of each sample.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ...core.closed_loop import RegionSchedule
+from ...core.models import Model, make_model
+from ...core.regions import Ellipse, Region
+from ...core.settings import ControllerSettings, default_config_path, load_params_file
+from .reachability import planar_passage, vdp_passage
+
+#: an ellipse never contains the initial point: its depth there is below -START_MARGIN
+START_MARGIN = 0.2
+
+Generator = Callable[[np.random.Generator, ControllerSettings, Model], dict[str, Any]]
+#: (final state [n], final output [p], goal output [p], regions) -> is there an admissible way?
+Passage = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Region]], bool]
+
+
+def spec_ellipses(spec: Mapping[str, Any]) -> list[Region]:
+    """The spec's ellipses as core regions."""
+    return [Ellipse(tuple(e["center"]), tuple(e["semi_axes"]), e["yaw"], e["frame"]) for e in spec["ellipses"]]
+
+
+def static_schedule(spec: Mapping[str, Any]) -> RegionSchedule:
+    """The spec's ellipses, set once at sample 0 (the default schedule)."""
+    regions = spec_ellipses(spec)
+    return lambda k: regions if k == 0 else None
+
+
+@dataclass(frozen=True)
+class Family:
+    """One scenario family (see the module docstring); `config` and `steps` as resolved by `families`."""
+
+    key: str
+    code: int
+    config_name: str
+    default_count: int
+    default_steps: int
+    generate: Generator
+    passage: Passage
+    title: str
+    schedule: Callable[[Mapping[str, Any]], RegionSchedule] = static_schedule
+    config: Path = Path()
+    steps: int = 0
+
+
+def _ellipse_dict(e: Ellipse) -> dict[str, Any]:
+    return {"center": list(e.center), "semi_axes": list(e.semi_axes), "yaw": e.yaw, "frame": e.frame}
+
+
+def place_ellipses(rng: np.random.Generator, count: int, start: np.ndarray, draw: Callable[[], Ellipse]
+                   ) -> list[dict[str, Any]]:
+    """`count` ellipses from `draw`, redrawn while one contains `start` (depth > -START_MARGIN)."""
+    out = []
+    for _ in range(count):
+        for _attempt in range(200):
+            e = draw()
+            if e.depth(start) < -START_MARGIN:
+                out.append(_ellipse_dict(e))
+                break
+    return out
+
+
+def vdp_scenario(rng: np.random.Generator, settings: ControllerSettings, model: Model) -> dict[str, Any]:
+    """x0 in the box with |x1 x2| <= 2, y_t ~ U[-8, 8], 0-4 state-plane ellipses not containing x0."""
+    lo, hi = np.array(settings.state_min), np.array(settings.state_max)
+    while True:
+        x0 = rng.uniform(lo, hi)
+        if abs(x0[0] * x0[1]) <= 2.0:
+            break
+    y_t = float(rng.uniform(-8.0, 8.0))
+    end = float(np.clip(y_t, lo[0] * settings.steady_state_scale, hi[0] * settings.steady_state_scale))
+
+    def draw() -> Ellipse:
+        if rng.random() < 0.5:  # near the way from x0 to the target's steady state
+            c = (rng.uniform(min(x0[0], end), max(x0[0], end)), rng.uniform(-1.2, 1.2))
+        else:
+            c = (rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1]))
+        return Ellipse(c, (rng.uniform(0.3, 1.5), rng.uniform(0.15, 0.8)), rng.uniform(0, math.pi), "state")
+
+    ellipses = place_ellipses(rng, int(rng.integers(0, 5)), x0[list(settings.plane)], draw)
+    return {"x0": x0.tolist(), "target": [y_t], "ellipses": ellipses}
+
+
+def robot_scenario(rng: np.random.Generator, settings: ControllerSettings, model: Model) -> dict[str, Any]:
+    """Start in [-9, 9]^2 with speed <= 1 m/s, goal ~ U[-11, 11]^2, 0-4 output-plane ellipses."""
+    start = rng.uniform(-9.0, 9.0, 2)
+    heading, speed = rng.uniform(0, 2 * math.pi), rng.uniform(0.0, 1.0)
+    x0 = np.array([*start, speed * math.cos(heading), speed * math.sin(heading)])
+    goal = rng.uniform(-11.0, 11.0, 2)
+    end = np.clip(goal, -9.9, 9.9)
+
+    def draw() -> Ellipse:
+        if rng.random() < 0.6:  # across the straight way to the goal
+            c = start + rng.uniform(0.25, 0.75) * (end - start) + rng.normal(0.0, 0.5, 2)
+        else:
+            c = rng.uniform(-9.0, 9.0, 2)
+        return Ellipse(tuple(c), (rng.uniform(0.4, 2.0), rng.uniform(0.4, 2.0)), rng.uniform(0, math.pi), "output")
+
+    ellipses = place_ellipses(rng, int(rng.integers(0, 5)), start, draw)
+    return {"x0": x0.tolist(), "target": goal.tolist(), "ellipses": ellipses}
+
+
+#: every family of the campaign, in the order they are listed and summarised
+FAMILIES: tuple[Family, ...] = (
+    Family("vdp", 1, "van_der_pol.yaml", 500, 80, vdp_scenario,
+           lambda x_end, y_end, y_goal, regions: vdp_passage(x_end, y_goal, regions), "van der Pol"),
+    Family("robot", 2, "mobile_robot.yaml", 200, 140, robot_scenario,
+           lambda x_end, y_end, y_goal, regions: planar_passage(y_end, y_goal, regions), "mobile robot"),
+)
+
+
+def families(configs: Mapping[str, Path | str | None] | None = None,
+             steps: Mapping[str, int | None] | None = None) -> dict[str, Family]:
+    """FAMILIES by key with their params file (default: the shipped one) and samples per run resolved."""
+    configs, steps = configs or {}, steps or {}
+    unknown = sorted((set(configs) | set(steps)) - {f.key for f in FAMILIES})
+    if unknown:
+        raise KeyError(f"unknown campaign families {unknown}")
+    shipped = default_config_path().parent
+    return {f.key: replace(f, config=Path(configs.get(f.key) or shipped / f.config_name),
+                           steps=int(steps.get(f.key) or f.default_steps)) for f in FAMILIES}
+
+
+def load_settings(config: Path, max_solve_time: float | None = None) -> ControllerSettings:
+    """Controller settings of a params file, optionally with another solver wall-time budget (s)."""
+    return settings_from_params(load_params_file(config).section("controller"), max_solve_time)
+
+
+def settings_from_params(params: Mapping[str, Any], max_solve_time: float | None = None,
+                         overrides: Mapping[str, Any] | None = None) -> ControllerSettings:
+    """Controller settings of a params section, with the campaign's budget and run-time overrides."""
+    settings = ControllerSettings.from_params(dict(params))
+    if max_solve_time:
+        settings = settings.replace(max_solve_time=max_solve_time)
+    return settings.replace(**overrides) if overrides else settings
+
+
+def make_specs(fam: Family, count: int, seed: int, settings: ControllerSettings, plant: str) -> list[dict[str, Any]]:
+    """Scenario specs 0..count-1 of one family (ids '<family>-0000', ...), reproducible from seed."""
+    model = make_model(settings.model)
+    specs = []
+    for i in range(count):
+        rng = np.random.default_rng([seed, fam.code, i])
+        spec = fam.generate(rng, settings, model)
+        specs.append({"id": f"{fam.key}-{i:04d}", "family": fam.key, "index": i, "config": str(fam.config),
+                      "steps": fam.steps, "plant": plant, **spec})
+    return specs
+
+
+def interleave(groups: Sequence[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """The families mixed in proportion (each group keeps its order), so the bar's rate is even."""
+    keyed = [((i + 0.5) / len(g), gi, spec) for gi, g in enumerate(groups) for i, spec in enumerate(g)]
+    return [spec for _, _, spec in sorted(keyed, key=lambda t: (t[0], t[1]))]
