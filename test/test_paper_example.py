@@ -123,8 +123,9 @@ def test_failed_solve_falls_back_to_the_shifted_plan_then_the_steady_input():
     plan = controller_ok.step(x, [5.0])
     controller._plan = controller_ok._plan  # the last good plan, then every solve is starved
     statuses, inputs = [], []
-    for _ in range(7):
-        res = controller.step(x, [5.0])
+    for k in range(7):
+        # the plant follows the plan (its states, then x_a): each candidate is judged from there
+        res = controller.step(plan.states[min(k + 1, 5)], [5.0])
         statuses.append(res.status)
         inputs.append(res.u[0])
     assert statuses[:4] == ["fallback_shift"] * 4
@@ -133,11 +134,16 @@ def test_failed_solve_falls_back_to_the_shifted_plan_then_the_steady_input():
     np.testing.assert_allclose(inputs[4:], [plan.u_a[0]] * 3)
 
 
-def test_no_plan_and_a_failed_solve_gives_the_safe_input():
+def test_no_plan_and_a_failed_solve_gives_the_safe_input_unless_it_predicts_a_violation():
     controller = NmpcController(ControllerSettings(max_iterations=1))
-    res = controller.step([-5.0, 0.0], [5.0])
+    res = controller.step([0.0, 0.0], [5.0])  # u = 0 keeps van der Pol at rest here
     assert res.status == "fallback_safe"
     assert res.u.tolist() == [0.0]
+    # from (-5, 0), u = 0 swings x2 beyond its bound of 2 within the horizon: the recovery solve
+    res = controller.step([-5.0, 0.0], [5.0])
+    assert res.status == "fallback_recovery" and res.predicted_violation <= 1e-3, res.fallback_reason
+    assert controller.fallback.predict(np.array([-5.0, 0.0]), np.zeros((5, 1)), controller.parameters(
+        np.array([-5.0, 0.0]), np.array([5.0])))[1] > 0.1
 
 
 def test_runtime_weight_change_needs_no_rebuild_and_structural_change_is_refused():

@@ -1,9 +1,10 @@
-"""The NMPC controller: one bounded solve per sample, shifted warm start, and the fallback.
+"""The NMPC controller: one bounded solve per sample, shifted warm start, escape and fallback.
 
-Fallback (DESIGN.md section 5): when a solve fails or its budget runs out without a usable
-iterate, the controller applies the shifted previous plan (the candidate of the paper's
-recursive-feasibility proof); once that plan is used up, the steady input u_a of the last plan;
-with no plan at all, a safe input (zero clipped to the input box).
+Escape (core/candidates.py): when y_a has stalled in front of a region that covers the steady
+states on the way to the target, more initial guesses are solved and the lowest-cost plan is kept.
+Fallback (core/fallback.py, docs/design.md): when a solve fails or its budget runs out without a
+usable iterate, the input among the shifted plan, u_a of the last plan, the safe input and a short
+recovery solve that predicts the least violation over the next samples.
 """
 
 from __future__ import annotations
@@ -14,18 +15,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .candidates import EscapeGuesses, Solution, lowest_cost, plan_cost
 from .errors import ConfigError, InputError
+from .fallback import FallbackSelector
 from .models import Model
-from .nlp import NlpBase, TrackingNlp
+from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase, TrackingNlp
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
 from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
 
-#: return statuses after which the solution is used as is (IPOPT, sqpmethod; FATROP reports 0)
-SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
-#: statuses that mean the iteration or time budget cut the solve
-BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
-
+#: samples without a new escape attempt after one that found no better plan (the scene is static)
+ESCAPE_RETRY_SAMPLES = 10
 
 #: the reference's time budget for a cold start (no previous plan): this multiple of max_solve_time
 COLD_START_TIME_FACTOR = 10.0
@@ -49,10 +49,14 @@ class StepResult:
         y_a, x_a, u_a: artificial steady output [p], state [n], input [m].
         offset_cost, avoidance_cost, tracking_cost: V_o, V_a and the stage-cost sum of the plan.
         status: 'ok' (solved), 'truncated' (budget cut, feasible iterate used), 'fallback_shift',
-            'fallback_steady' or 'fallback_safe'.
+            'fallback_steady', 'fallback_safe' or 'fallback_recovery' (see core/fallback.py).
         solver_status: the solver's own return status.
         iterations: solver iterations; solve_time: wall time of the solve in s.
         budget_exhausted: True when the iteration or time budget cut the solve.
+        escape: '' unless local-minimum escape guesses were tried: which plan was kept
+            ('shifted' or the guess's label) and one entry per guess tried.
+        fallback_reason: for a fallback, which candidate was applied and every candidate's
+            predicted violation; predicted_violation: the applied one's (region g / state units).
     """
 
     u: np.ndarray
@@ -69,10 +73,30 @@ class StepResult:
     iterations: int
     solve_time: float
     budget_exhausted: bool = False
+    escape: str = ""
+    fallback_reason: str = ""
+    predicted_violation: float = math.nan
 
     @property
     def is_fallback(self) -> bool:
         return self.status.startswith("fallback")
+
+
+@dataclass
+class _Attempt:
+    """The outcome of the sample's regular solve (see NmpcController._solve)."""
+
+    w: np.ndarray
+    lam_x: np.ndarray
+    lam_g: np.ndarray
+    nlp: NlpBase
+    solver_status: str
+    iterations: int
+    solve_time: float
+    solved: bool
+    usable: bool
+    budget_cut: bool
+    finite: bool
 
 
 @dataclass
@@ -144,6 +168,10 @@ class NmpcController:
         # on from): the next sample re-seeds through the cold-start solvers, else the fast path
         # can stall on its own shifted guess sample after sample (measured in the campaign)
         self._reseed = False
+        self.escape = EscapeGuesses(self.cold_nlp or self.nlp, self.model, self.settings)
+        # samples to wait before the next escape attempt (one that found nothing better)
+        self._escape_wait = 0
+        self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
 
@@ -184,6 +212,15 @@ class NmpcController:
         self._plan = None
         self._pending = None
         self._reseed = False
+        self._escape_wait = 0
+
+    def parameters(self, x: np.ndarray, y_t: np.ndarray) -> np.ndarray:
+        """The NLP parameter vector for state x [n] and target y_t [p] with the current settings and regions."""
+        s = self.settings
+        return self.nlp.parameters(
+            x, y_t, self._slots, kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
+            input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
+        )
 
     # -- the sample --------------------------------------------------------------------------
     def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None) -> StepResult:
@@ -197,10 +234,36 @@ class NmpcController:
         if regions is not None:
             self.set_regions(regions)
         s = self.settings
-        par = self.nlp.parameters(
-            x, y_t, self._slots, kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
-            input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
-        )
+        par = self.parameters(x, y_t)
+        previous_y_a = None if self._plan is None else self._plan.y_a.copy()
+        attempt = self._solve(x, y_t, par)
+        if not attempt.usable:
+            self._pending = (attempt.w, attempt.lam_x, attempt.lam_g) if (
+                attempt.finite and attempt.budget_cut and attempt.nlp is self.nlp) else None
+            self._reseed = self.cold_nlp is not None and self._pending is None
+            return self._fallback(x, par, attempt.solver_status, attempt.iterations, attempt.solve_time,
+                                  attempt.budget_cut)
+        self._pending = None
+        self._reseed = False
+        best = Solution(attempt.w, attempt.lam_x, attempt.lam_g, attempt.nlp, attempt.solved, math.nan, math.nan)
+        solve_time, escape = attempt.solve_time, ""
+        if self._escape_due(best, previous_y_a, y_t, par):
+            best, tried, spent = self._escape(x, y_t, par, best, s.max_solve_time - solve_time)
+            solve_time += spent
+            escape = f"{best.label}; tried: " + "; ".join(tried)
+        lam_x, lam_g = best.lam_x, best.lam_g
+        if best.nlp is not self.nlp:  # solved by the reference: the fast path's multipliers start from zero
+            lam_x, lam_g = np.zeros(self.nlp.layout.n_w), np.zeros(self.nlp.lbg.size)
+        plan = self._accept(x, best.w, par, lam_x, lam_g, best.nlp)
+        status = "ok" if best.solved else "truncated"
+        result = self._result(plan, x, 0, status, attempt.solver_status, attempt.iterations, solve_time,
+                              attempt.budget_cut)
+        result.escape = escape
+        return result
+
+    def _solve(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray) -> _Attempt:
+        """The sample's regular solve: the fast path from the shifted plan (cold: the cold-start solvers)."""
+        s = self.settings
         cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed)
         # SQP paths try a cold start themselves first (cheap, and it works on small problems);
         # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
@@ -228,18 +291,27 @@ class NmpcController:
             usable = finite and (solved or nlp.violation(w, par) <= s.feasibility_tolerance)
             if usable:
                 break
-        solve_time = elapsed
-        if nlp is not self.nlp:  # solved by the reference: the fast path's multipliers start from zero
-            lam_x, lam_g = np.zeros(self.nlp.layout.n_w), np.zeros(self.nlp.lbg.size)
-        if usable:
-            self._pending = None
-            self._reseed = False
-            plan = self._accept(x, w, par, lam_x, lam_g, nlp)
-            status = "ok" if solved else "truncated"
-            return self._result(plan, x, 0, status, solver_status, iterations, solve_time, budget_cut)
-        self._pending = (w, lam_x, lam_g) if finite and budget_cut and nlp is self.nlp else None
-        self._reseed = self.cold_nlp is not None and self._pending is None
-        return self._fallback(x, solver_status, iterations, solve_time, budget_cut)
+        return _Attempt(w, lam_x, lam_g, nlp, solver_status, iterations, elapsed, solved, usable, budget_cut, finite)
+
+    def _escape_due(self, base: Solution, previous_y_a: np.ndarray | None, y_t: np.ndarray, par: np.ndarray) -> bool:
+        """Try escape guesses now? Stalled in front of a blocking region, and not tried in vain just before."""
+        if self._escape_wait > 0:
+            self._escape_wait -= 1
+            return False
+        y_a = base.nlp.layout.split_w(base.w)[2]
+        return self.escape.should_try(y_a, previous_y_a, y_t, par)
+
+    def _escape(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution, time_left: float
+                ) -> tuple[Solution, list[str], float]:
+        """The lowest-cost plan among the base and the escape guesses (solved by the reference if any)."""
+        nlp = self.cold_nlp or self.nlp
+        base.cost, base.depth = plan_cost(base.nlp, base.w, par), base.nlp.max_depth(base.w, par)
+        y_a = base.nlp.layout.split_w(base.w)[2]
+        guesses = self.escape.guesses(x, y_a, y_t, par, self._regions)
+        best, tried, spent = lowest_cost(nlp, x, par, base, guesses, time_left, self.settings.feasibility_tolerance)
+        if best is base:  # nothing better here: do not try again every sample while at rest
+            self._escape_wait = ESCAPE_RETRY_SAMPLES
+        return best, tried, spent
 
     def coast(self) -> StepResult | None:
         """A sample without a new measurement: the next input of the last plan (then u_a).
@@ -309,17 +381,39 @@ class NmpcController:
             return np.asarray(x_s, float).ravel(), np.asarray(u_s, float).ravel()
         return np.zeros(self.model.n), np.zeros(self.model.m)
 
-    def _fallback(self, x: np.ndarray, solver_status: str, iterations: int, solve_time: float,
+    def set_safe_input(self, u: Sequence[float]) -> None:
+        """The model's safe input [m], one of the fallback's candidates (InputError if malformed or
+        outside the input box)."""
+        u = validate_vector("safe_input", u, self.model.m)
+        if np.any(u < self._input_lo) or np.any(u > self._input_hi):
+            raise InputError(f"safe_input {u.tolist()} is outside the input box")
+        self.fallback.safe_input = u
+
+    def _fallback(self, x: np.ndarray, par: np.ndarray, solver_status: str, iterations: int, solve_time: float,
                   budget_cut: bool) -> StepResult:
+        """The candidate input predicting the least violation (core/fallback.py); the plan ages by one."""
         plan = self._plan
-        if plan is None:
-            u = np.clip(np.zeros(self.model.m), self._input_lo, self._input_hi)
-            nan_n, nan_p = np.full(self.model.n, np.nan), np.full(self.model.p, np.nan)
-            return StepResult(u, x[None, :], u[None, :], nan_p, nan_n, u.copy(), math.nan, math.nan, math.nan,
-                              "fallback_safe", solver_status, iterations, solve_time, budget_cut)
-        plan.age += 1
-        status = "fallback_shift" if plan.age < self.nlp.layout.horizon else "fallback_steady"
-        return self._result(plan, x, plan.age, status, solver_status, iterations, solve_time, budget_cut)
+        N = self.nlp.layout.horizon
+        shifted = u_a = None
+        if plan is not None:
+            plan.age += 1
+            shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])
+            u_a = plan.u_a
+        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N)
+        solve_time += choice.solve_time
+        if plan is not None and choice.kind in ("shift", "steady"):
+            result = self._result(plan, x, plan.age, f"fallback_{choice.kind}", solver_status, iterations,
+                                  solve_time, budget_cut)
+        else:
+            nan_p = np.full(self.model.p, np.nan) if plan is None else plan.y_a.copy()
+            nan_n = np.full(self.model.n, np.nan) if plan is None else plan.x_a.copy()
+            u_a_out = choice.inputs[0].copy() if plan is None else plan.u_a.copy()
+            result = StepResult(choice.inputs[0].copy(), choice.states, choice.inputs.copy(), nan_p, nan_n, u_a_out,
+                                math.nan, math.nan, math.nan, f"fallback_{choice.kind}", solver_status,
+                                iterations, solve_time, budget_cut)
+        result.fallback_reason = choice.reason
+        result.predicted_violation = choice.violation
+        return result
 
     def _result(self, plan: _Plan, x: np.ndarray, age: int, status: str, solver_status: str, iterations: int,
                 solve_time: float, budget_cut: bool) -> StepResult:

@@ -33,6 +33,11 @@ from .models import Model, make_model
 from .regions import SlotLayout
 from .settings import SOLVERS, ControllerSettings
 
+#: return statuses after which the solution is used as is (IPOPT, sqpmethod; FATROP reports 0)
+SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
+#: statuses that mean the iteration or time budget cut the solve
+BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
+
 
 @dataclass
 class NlpLayout:
@@ -155,6 +160,12 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
                         output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None)
 
 
+def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
+    """(x [n], u [m], p [n_param]) -> region functions g [n_depth] (> 0 inside a region to avoid)."""
+    xs, us = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
+    return ca.Function("region_depth", [xs, us, parts.par], [parts.avoidance(xs, us)])
+
+
 class Buffered:
     """A CasADi Function called through `Function.buffer()`: arrays bound once, no conversion per call.
 
@@ -259,6 +270,15 @@ class NlpBase:
                 list(solver.name_out()[:6]) != ["x", "f", "g", "lam_x", "lam_g", "lam_p"]:
             raise ConfigError(f"unexpected solver signature {solver.name_in()} -> {solver.name_out()}")
         return Buffered(solver, fixed={2: self.lbx, 3: self.ubx, 4: self.lbg, 5: self.ubg}, densify=False)
+
+    #: (x [n], u [m], p) -> region functions g [n_depth], set by the subclass's build
+    region_depth: ca.Function
+
+    def max_depth(self, w: np.ndarray, par: np.ndarray) -> float:
+        """Deepest predicted penetration of any active region over the plan w (0 if outside all)."""
+        if not self._slack_index.size:
+            return 0.0
+        return float(np.max(self._slack_value(w, par)[0]))
 
     def fill_slacks(self, w: np.ndarray, par: np.ndarray) -> np.ndarray:
         """w with its slacks set to max(0, depth) of its own states (the tightest feasible slacks)."""
@@ -392,6 +412,7 @@ class TrackingNlp(NlpBase):
         self.constraint_values = Buffered(ca.Function("constraints", [w, par], [ca.vertcat(*g)]))
         self._slack_value = Buffered(ca.Function("slack_of", [w, par], [ca.fmax(0, depth)]))
         self._slack_index = np.arange(layout.n_w - layout.n_slack, layout.n_w)
+        self.region_depth = depth_function(parts, mdl)
 
 
 #: weight of the slacks' own regularisation in the stage-wise paths (mu = 0 leaves them free

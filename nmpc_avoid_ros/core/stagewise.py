@@ -30,7 +30,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .models import Model, make_model
-from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, check_sizes, make_solver, problem_parts
+from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, check_sizes, depth_function, make_solver, problem_parts
 from .settings import ControllerSettings
 
 #: iteration budget of a cold start (no previous plan), also in core/controller.py
@@ -199,6 +199,7 @@ class StagewiseNlp(NlpBase):
         self.steady = Buffered(ca.Function("steady", [w], [x_a0, u_a0]))
         self.constraint_values = Buffered(ca.Function("constraints", [w, par], [g]))
         self._slack_value = Buffered(ca.Function("slack_of", [w, par], [ca.fmax(0, all_depths)]))
+        self.region_depth = depth_function(parts, mdl)
         # where the slack variables sit in w, in the order of all_depths
         index = ca.Function("index", [w], [ca.vertcat(*slack_vars)])
         probe = np.arange(w.numel(), dtype=float)

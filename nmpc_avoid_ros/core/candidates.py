@@ -1,0 +1,230 @@
+"""Local-minimum escape: more initial guesses than the shifted plan when the loop stalls.
+
+The artificial steady output y_a moves continuously from sample to sample. When a region lies
+across the steady states between y_a and the target, every y_a on the way there is inside it and
+costs mu F(x_a): the shifted warm start cannot leave the local minimum in front of the region (the
+campaign's 'local_minimum' stop-shorts). The escape tries initial guesses whose y_a lies beyond
+each blocking stretch of the steady-state segment, reached along a straight line and along a detour
+around each region in the way, on either side; the controller solves them within the sample's
+budget and keeps the lowest-cost plan that satisfies the hard constraints.
+
+When (see `EscapeGuesses.should_try`): the steady-state segment from y_a to the target is blocked
+by an active region AND y_a has stalled (moved less than `STALL_TOLERANCE` in the last sample).
+Without a blocking region (the paper's loops: the keep-in |x1 x2| <= 2 never covers a steady
+state, where x2 = 0) nothing is tried.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .models import Model
+from .nlp import SOLVED, Buffered, NlpBase
+from .regions import Region
+from .settings import ControllerSettings
+
+#: points on the steady-state segment from y_a to the target where blocking is checked
+SEGMENT_POINTS = 48
+#: y_a has stalled when it moved less than this (output units, inf-norm) in the last sample
+STALL_TOLERANCE = 1e-3
+#: a detour passes this far outside a region's bounding circle, relative to its radius
+DETOUR_MARGIN = 0.25
+
+
+@dataclass
+class Guess:
+    """One initial guess: y_a [p], x(1..N) [N, n], u(0..N-1) [N, m], and how it was made."""
+
+    label: str
+    y_a: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+
+
+def bounding_circle(region: Region) -> tuple[np.ndarray, float] | None:
+    """Centre [2] and radius of a circle around the region in its plane (None for unknown kinds)."""
+    if hasattr(region, "semi_axes"):
+        return np.asarray(region.center, float), float(max(region.semi_axes))
+    if hasattr(region, "vertices"):
+        pts = np.asarray(region.vertices, float)
+        centre = pts.mean(axis=0)
+        return centre, float(np.max(np.linalg.norm(pts - centre, axis=1)))
+    return None
+
+
+class EscapeGuesses:
+    """Builds the escape guesses of one NLP (needs the model's closed-form steady state)."""
+
+    def __init__(self, nlp: NlpBase, model: Model, settings: ControllerSettings) -> None:
+        self.model, self.settings = model, settings
+        self.horizon = nlp.layout.horizon
+        self.available = model.steady_state is not None
+        if not self.available:
+            return
+        lam = settings.steady_state_scale
+        self._lo = lam * np.array([*settings.state_min, *settings.input_min], float)
+        self._hi = lam * np.array([*settings.state_max, *settings.input_max], float)
+        y = ca.SX.sym("y", model.p)
+        par = ca.SX.sym("p", nlp.region_depth.size1_in(2))
+        x_s, u_s = (ca.vertcat(v) for v in model.steady_state(y))
+        point = ca.Function("steady_point", [y, par], [x_s, u_s, nlp.region_depth(x_s, u_s, par)])
+        Y = ca.SX.sym("Y", model.p, SEGMENT_POINTS)
+        outs = point.map(SEGMENT_POINTS)(Y, ca.repmat(par, 1, SEGMENT_POINTS))
+        self._segment = Buffered(ca.Function("steady_segment", [Y, par], list(outs)))
+        xs, us = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
+        self._output = Buffered(ca.Function("output", [xs, us], [model.output(xs, us)]))
+        self._steady = Buffered(ca.Function("steady", [y], [x_s, u_s]))
+
+    def should_try(self, y_a: np.ndarray, y_a_before: np.ndarray | None, y_t: np.ndarray, par: np.ndarray) -> bool:
+        """Stalled (y_a moved < STALL_TOLERANCE since the last sample) with a region across the way."""
+        if not self.available or y_a_before is None:
+            return False
+        if np.max(np.abs(y_a - y_a_before)) >= STALL_TOLERANCE:
+            return False
+        return bool(self.beyond_blocks(y_a, y_t, par))
+
+    def beyond_blocks(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> list[np.ndarray]:
+        """Outputs just beyond each stretch of the segment y_from -> y_to whose steady state is inside
+        a region, as long as they are admissible (steady state in lambda Z, outside every region)."""
+        t = np.linspace(0.0, 1.0, SEGMENT_POINTS)
+        Y = y_from[:, None] + (y_to - y_from)[:, None] * t[None, :]
+        x_s, u_s, depth = self._segment(Y.T.ravel(), par)
+        z = np.vstack([x_s.reshape(SEGMENT_POINTS, -1).T, u_s.reshape(SEGMENT_POINTS, -1).T])
+        in_box = np.all((z >= self._lo[:, None]) & (z <= self._hi[:, None]), axis=0)
+        depth = depth.reshape(SEGMENT_POINTS, -1)
+        blocked = np.any(depth > 0, axis=1) if depth.size else np.zeros(SEGMENT_POINTS, bool)
+        free = in_box & ~blocked
+        beyond = []
+        inside_block = False
+        for k in range(SEGMENT_POINTS):
+            if blocked[k]:
+                inside_block = True
+            elif inside_block and free[k]:
+                # one more point past the boundary, where the penalty's gradient is not pulling back
+                j = k + 1 if k + 1 < SEGMENT_POINTS and free[k + 1] else k
+                beyond.append(Y[:, j].copy())
+                inside_block = False
+            if not in_box[k] and not blocked[k]:
+                break  # beyond lambda Z: further outputs are not steady states the plan may use
+        return beyond
+
+    def guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
+                regions: Sequence[Region]) -> list[Guess]:
+        """Candidate guesses: y_a beyond each blocking stretch, straight and around each region on either side."""
+        out = []
+        for i, y_new in enumerate(self.beyond_blocks(y_a, y_t, par)):
+            x_new, u_new = (v.copy() for v in self._steady(y_new))
+            out.append(Guess(f"beyond{i}", y_new, self._path(x, [], x_new), np.tile(u_new, (self.horizon, 1))))
+            for j, region in enumerate(regions):
+                for side, waypoint in zip(("left", "right"), self._detours(x, x_new, y_a, y_new, region)):
+                    out.append(Guess(f"beyond{i}_{side}_of_region{j}", y_new, self._path(x, [waypoint], x_new),
+                                     np.tile(u_new, (self.horizon, 1))))
+        return out
+
+    def _detours(self, x: np.ndarray, x_new: np.ndarray, y_a: np.ndarray, y_new: np.ndarray,
+                 region: Region) -> list[np.ndarray]:
+        """Two waypoint states beside the region (either side of the way), or none if it is not in the way."""
+        circle = bounding_circle(region)
+        if circle is None:
+            return []
+        centre, radius = circle
+        if region.frame == "state":
+            plane = list(self.settings.plane)
+            start, end = x[plane], x_new[plane]
+        else:
+            plane = list(self.settings.output_plane)
+            u_now = np.zeros(self.model.m)
+            start, end = self._output(x, u_now)[plane].copy(), y_new[plane] if y_new.size > max(plane) else None
+            if end is None:
+                return []
+        direction = end - start
+        length = float(np.linalg.norm(direction))
+        if length < 1e-9:
+            return []
+        direction /= length
+        # in the way: the segment passes within the bounding circle
+        along = float(np.clip(np.dot(centre - start, direction), 0.0, length))
+        if np.linalg.norm(start + along * direction - centre) > radius:
+            return []
+        normal = np.array([-direction[1], direction[0]])
+        waypoints = []
+        for sign in (1.0, -1.0):
+            point = centre + sign * (1 + DETOUR_MARGIN) * radius * normal
+            middle = 0.5 * (x + x_new)
+            if region.frame == "state":
+                middle[plane] = point
+            else:
+                y_mid = 0.5 * (y_a + y_new)
+                y_mid[plane] = point
+                middle = self._steady(y_mid)[0].copy()
+            waypoints.append(np.clip(middle, self.settings.state_min, self.settings.state_max))
+        return waypoints
+
+    def _path(self, x: np.ndarray, waypoints: list[np.ndarray], x_end: np.ndarray) -> np.ndarray:
+        """x(1..N) [N, n] along the polyline x -> waypoints -> x_end, evenly by arc length."""
+        nodes = np.vstack([x, *waypoints, x_end])
+        lengths = np.linalg.norm(np.diff(nodes, axis=0), axis=1)
+        arc = np.concatenate([[0.0], np.cumsum(lengths)])
+        if arc[-1] < 1e-12:
+            return np.tile(x_end, (self.horizon, 1))
+        s = np.linspace(0.0, arc[-1], self.horizon + 1)[1:]
+        states = np.column_stack([np.interp(s, arc, nodes[:, i]) for i in range(nodes.shape[1])])
+        states[-1] = x_end  # x(N) = x_a exactly
+        return states
+
+
+@dataclass
+class Solution:
+    """A solver result: w [n_w], multipliers, which NLP solved it, its cost and predicted depth."""
+
+    w: np.ndarray
+    lam_x: np.ndarray
+    lam_g: np.ndarray
+    nlp: NlpBase
+    solved: bool
+    cost: float
+    depth: float
+    label: str = "shifted"
+
+
+#: a candidate may predict at most this much penetration beyond the shifted plan's (region g units)
+DEPTH_ALLOWANCE = 1e-4
+
+
+def plan_cost(nlp: NlpBase, w: np.ndarray, par: np.ndarray) -> float:
+    """V_o + V_a + tracking of the plan w (the paper's cost, with the penalty's max(0, g)^2)."""
+    return float(sum(float(term[0]) for term in nlp.terms(w, par)))
+
+
+def lowest_cost(nlp: NlpBase, x: np.ndarray, par: np.ndarray, base: Solution, guesses: Sequence[Guess],
+                time_left: float, feasibility_tolerance: float) -> tuple[Solution, list[str], float]:
+    """Solve from each guess while time is left; the lowest-cost usable plan, base included.
+
+    A candidate counts when it satisfies the hard constraints (solved, or violation below the
+    tolerance) and predicts no more penetration than the base plan (+ DEPTH_ALLOWANCE): an escape
+    must not buy progress with penetration. Returns (best, one line per candidate tried, seconds).
+    """
+    best, report, spent = base, [], 0.0
+    layout = nlp.layout
+    for guess in guesses:
+        if spent >= time_left:
+            report.append(f"{guess.label}: not tried (sample budget spent)")
+            continue
+        rest = None if layout.closed_form else np.concatenate([guess.states[-1], guess.inputs[-1]])
+        w0 = nlp.fill_slacks(layout.join_w(guess.inputs, guess.states, guess.y_a, rest, x0=x), par)
+        w, lam_x, lam_g, stats, seconds = nlp.solve(w0, par, np.zeros(layout.n_w), np.zeros(nlp.lbg.size))
+        spent += seconds
+        status = str(stats.get("return_status", "unknown"))
+        solved = status in SOLVED
+        if not (np.all(np.isfinite(w)) and (solved or nlp.violation(w, par) <= feasibility_tolerance)):
+            report.append(f"{guess.label}: unusable ({status})")
+            continue
+        cost, depth = plan_cost(nlp, w, par), nlp.max_depth(w, par)
+        report.append(f"{guess.label}: cost {cost:.6g}, depth {depth:.2g}")
+        if cost < best.cost and depth <= base.depth + DEPTH_ALLOWANCE:
+            best = Solution(w, lam_x, lam_g, nlp, solved, cost, depth, guess.label)
+    return best, report, spent

@@ -1,0 +1,147 @@
+"""The fallback input when a sample has no usable solution, chosen by the violation it predicts.
+
+Candidates, in order of preference among those predicting the least violation (violations up to
+VIOLATION_TOLERANCE count as none):
+
+* ``shift``: the rest of the last plan, then its u_a (the candidate of the paper's recursive
+  feasibility proof; available while the plan lasts);
+* ``steady``: u_a of the last plan, held;
+* ``safe``: the model's configured safe input (`safe_input`; zero clipped to the input box if unset);
+* ``recovery``: a short solve that minimises the predicted penalty and constraint violation over
+  the input sequence alone (input box only, so it is always feasible); tried only when every
+  other candidate predicts more than VIOLATION_TOLERANCE.
+
+Each candidate's input sequence is simulated with the prediction model over `horizon` samples;
+its predicted violation is the largest, over those samples, of: region functions g (keep-in
+expressions and obstacles, active ones), state-box excess and hard-constraint excess. The one
+with the least is applied (never blindly u = 0: measured in the campaign, u = 0 after a failed
+cold start drove van der Pol to |x1 x2| - 2 = 4.11).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .models import Model
+from .nlp import NlpBase, problem_parts
+from .settings import ControllerSettings
+
+#: candidates in order of preference among equal predicted violations
+CANDIDATES = ("shift", "steady", "safe", "recovery")
+#: predicted violations up to this count as none (region g and state units): a plan's own penalty
+#: optimum predicts ~1e-4 of penetration, which must not lose to a recovery solve over rounding
+VIOLATION_TOLERANCE = 1e-3
+#: iteration budget of the recovery solve
+RECOVERY_ITERATIONS = 100
+#: weight of |u - u_ref|^2 in the recovery solve: picks the input nearest the reference among
+#: equally safe ones (small against any violation worth removing)
+RECOVERY_REGULARISATION = 1e-6
+
+
+@dataclass
+class FallbackChoice:
+    """The chosen candidate: its name, inputs [H, m], predicted states x(0..H) [H+1, n], its
+    predicted violation and one line saying why (every candidate's predicted violation)."""
+
+    kind: str
+    inputs: np.ndarray
+    states: np.ndarray
+    violation: float
+    reason: str
+    solve_time: float = 0.0
+
+
+class FallbackSelector:
+    """Simulates candidate input sequences and solves the recovery problem of one settings structure."""
+
+    def __init__(self, nlp: NlpBase, model: Model, settings: ControllerSettings) -> None:
+        self.model, self.settings = model, settings
+        H = self.horizon = settings.horizon
+        n, m = model.n, model.m
+        parts = problem_parts(settings, model)
+        f = model.discrete(settings.sample_time, settings.discretization)
+        x0, par = ca.SX.sym("x0", n), ca.SX.sym("p", parts.par.numel())
+        U = ca.SX.sym("U", m, H)
+        depth = nlp.region_depth
+        x_lo, x_hi = np.array(settings.state_min, float), np.array(settings.state_max, float)
+        states, excess = [x0], []
+        x = x0
+        for k in range(H):
+            x = f(x, U[:, k])
+            states.append(x)
+            u_next = U[:, min(k + 1, H - 1)]
+            terms = [depth(x, u_next, par), x - x_hi, x_lo - x]
+            if parts.n_hard:
+                terms.append(parts.hard_g(x, u_next))
+            excess.append(ca.vertcat(*terms))
+        excess = ca.vertcat(*excess)  # [H * rows]: > 0 where violated
+        self._rollout = ca.Function("fallback_rollout", [x0, U, par], [ca.horzcat(*states), ca.mmax(excess)])
+        # recovery: min sum max(0, excess)^2 (smooth with slacks s >= excess, s >= 0) + small |u - u_ref|^2
+        slack = ca.SX.sym("s", excess.numel())
+        u_ref = ca.SX.sym("u_ref", m)
+        cost = ca.sumsqr(slack) + RECOVERY_REGULARISATION * ca.sumsqr(U - ca.repmat(u_ref, 1, H))
+        problem = {"x": ca.vertcat(ca.vec(U), slack), "p": ca.vertcat(x0, par, u_ref), "f": cost,
+                   "g": slack - excess}
+        options = {"print_time": False, "error_on_fail": False,
+                   "ipopt": {"print_level": 0, "sb": "yes", "max_iter": RECOVERY_ITERATIONS,
+                             "max_wall_time": settings.max_solve_time, "tol": 1e-8}}
+        self._recovery = ca.nlpsol("fallback_recovery", "ipopt", problem, options)
+        lo, hi = np.array(settings.input_min, float), np.array(settings.input_max, float)
+        self._lbx = np.concatenate([np.tile(lo, H), np.zeros(slack.numel())])
+        self._ubx = np.concatenate([np.tile(hi, H), np.full(slack.numel(), np.inf)])
+        self._n_slack = slack.numel()
+        self._input_lo, self._input_hi = lo, hi
+        #: the model's safe input [m] (NmpcController.set_safe_input); zero clipped to the input box
+        self.safe_input = np.clip(np.zeros(m), lo, hi)
+
+    def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
+        """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""
+        states, worst = self._rollout(x, np.asarray(inputs, float).T, par)
+        return np.asarray(states).T, max(0.0, float(worst))
+
+    def recover(self, x: np.ndarray, par: np.ndarray, start: np.ndarray) -> tuple[np.ndarray | None, float]:
+        """Inputs [H, m] minimising the predicted violation from the guess `start` [H, m] (None if the
+        solve failed), and its wall time in s."""
+        guess = np.concatenate([np.asarray(start, float).ravel(), np.zeros(self._n_slack)])  # = vec(U)
+        begin = time.perf_counter()
+        sol = self._recovery(x0=guess, p=np.concatenate([x, par, start[0]]), lbx=self._lbx, ubx=self._ubx,
+                             lbg=0.0, ubg=np.inf)
+        seconds = time.perf_counter() - begin
+        w = np.asarray(sol["x"]).ravel()
+        m, H = self.model.m, self.horizon
+        inputs = np.clip(w[: m * H].reshape(H, m), self._input_lo, self._input_hi)
+        # judged by its simulated violation like the others, so an unconverged iterate may serve
+        if not np.all(np.isfinite(inputs)):
+            return None, seconds
+        return inputs, seconds
+
+    def choose(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray | None, u_a: np.ndarray | None,
+               plan_left: bool) -> FallbackChoice:
+        """The least-violating candidate for state x [n]. `plan_inputs` [H, m]: the shifted plan's
+        inputs (padded with u_a); `plan_left`: the shifted plan still has inputs of its own."""
+        H = self.horizon
+        sequences: dict[str, np.ndarray] = {}
+        if plan_inputs is not None and plan_left:
+            sequences["shift"] = np.asarray(plan_inputs, float)
+        if u_a is not None:
+            sequences["steady"] = np.tile(u_a, (H, 1))
+        sequences["safe"] = np.tile(self.safe_input, (H, 1))
+        predicted = {kind: self.predict(x, seq, par) for kind, seq in sequences.items()}
+        seconds = 0.0
+        if min(v for _, v in predicted.values()) > VIOLATION_TOLERANCE:
+            best_start = min(sequences, key=lambda k: predicted[k][1])
+            inputs, seconds = self.recover(x, par, sequences[best_start])
+            if inputs is not None:
+                sequences["recovery"] = inputs
+                predicted["recovery"] = self.predict(x, inputs, par)
+        least = max(VIOLATION_TOLERANCE, min(v for _, v in predicted.values()))
+        kind = next(k for k in CANDIDATES if k in predicted and predicted[k][1] <= least)
+        others = ", ".join(f"{k} {predicted[k][1]:.3g}" for k in CANDIDATES if k in predicted)
+        reason = f"{kind}: least predicted violation over {H} samples ({others})"
+        states, violation = predicted[kind]
+        return FallbackChoice(kind, sequences[kind], states, violation, reason, seconds)
+

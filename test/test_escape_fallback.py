@@ -1,0 +1,160 @@
+"""Local-minimum escape (core/candidates.py) and the fallback choice (core/fallback.py).
+
+The regression scenes come from the campaign (docs/campaign): an ellipse across the steady states
+between y_a and the target, where the shifted warm start rested in front of it, and vdp-0012,
+where u = 0 after a failed cold start drove van der Pol to |x1 x2| - 2 = 4.11.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import PAPER_STEPS, PAPER_TARGET, PAPER_X0
+
+from nmpc_avoid_ros.core.candidates import Guess, Solution, lowest_cost, plan_cost
+from nmpc_avoid_ros.core.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.errors import InputError
+from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.settings import ControllerSettings
+
+#: an ellipse across x2 = 0 (steady states x1 in [2.95, 3.45]) whose top is only 0.05 above the
+#: axis: from x0 = (-5, 0) towards y_t = 7.9 (best reachable 5.94) the loop rested at x1 = 2.95
+BLOCKER = Ellipse((3.2, -0.5), (0.6, 0.55))
+
+#: campaign vdp-0012 (seed 0): the first solve fails (IPOPT iteration budget) from this state
+VDP_0012 = {"x0": [3.612622975901772, -0.2557715699357259], "target": [-3.8509723195550993],
+            "ellipses": [((-5.59769407385972, 0.7514897718812881), (0.4315736358819213, 0.7611778116913936),
+                          0.9707573865612938),
+                         ((1.2891068448049152, -1.0404584763788542), (1.1592269895894767, 0.6158543360680077),
+                          0.55044698684034),
+                         ((1.533889411453755, 1.133193542806174), (1.236436510084207, 0.5170351578878774),
+                          2.1357439901144017)]}
+
+
+def keep_in_penetration(x: np.ndarray) -> float:
+    return float(np.max(np.abs(x[:, 0] * x[:, 1])) - 2.0)
+
+
+def test_an_ellipse_across_the_steady_states_is_passed_not_rested_in_front_of():
+    controller = NmpcController(ControllerSettings(max_solve_time=2.0))
+    results = []
+    run = run_closed_loop(controller, [-5.0, 0.0], [7.9], 60, regions=lambda k: [BLOCKER] if k == 0 else None,
+                          on_step=lambda k, res: results.append(res))
+    best = 6.0 * controller.settings.steady_state_scale
+    assert run.x[-1, 0] == pytest.approx(best, abs=0.05), "rested in front of the ellipse (today's x1 = 2.95)"
+    assert max(BLOCKER.depth(x) for x in run.x) <= 1e-3
+    escapes = [r.escape for r in results if r.escape]
+    assert escapes and escapes[0].startswith("beyond"), escapes
+    assert set(run.status) == {"ok"}
+
+
+#: campaign vdp-0079 (seed 0): classified 'local_minimum' (rested at x1 = -2.899 instead of -3.493)
+VDP_0079 = {"x0": [0.7781711002665253, 1.9193882725293236], "target": [-3.4931632816011557],
+            "ellipses": [((-2.6436468312843604, 0.49702687896775144), (0.9726206021818167, 0.1627745497466755),
+                          0.8520174526282402),
+                         ((2.1703360475329188, 0.8434551236070367), (1.0745344566557002, 0.531707395506517),
+                          1.2475413533251438),
+                         ((-0.9565638954995075, 1.1147243426397264), (1.124870941552013, 0.2701970797567176),
+                          2.7740103985630418)]}
+
+
+def test_campaign_local_minimum_scene_reaches_the_target():
+    """vdp-0079 of the campaign: the shifted warm start rested at x1 = -2.899 (target -3.493, free)."""
+    regions = [Ellipse(c, a, yaw) for c, a, yaw in VDP_0079["ellipses"]]
+    controller = NmpcController(ControllerSettings(max_solve_time=2.0))
+    run = run_closed_loop(controller, VDP_0079["x0"], VDP_0079["target"], 40,
+                          regions=lambda k: regions if k == 0 else None)
+    assert run.x[-1, 0] == pytest.approx(VDP_0079["target"][0], abs=0.05)
+    assert max(e.depth(x) for e in regions for x in run.x) <= 1e-3
+    assert keep_in_penetration(run.x) <= 1e-3
+
+
+@pytest.mark.parametrize("mu,plant", [(0.0, "euler"), (1e8, "euler"), (0.0, "continuous"), (1e8, "continuous")])
+def test_the_paper_loops_never_trigger_an_escape_or_a_fallback(paper, mu, plant):
+    controller = NmpcController(ControllerSettings(mu=mu))
+    results = []
+    run = run_closed_loop(controller, PAPER_X0, PAPER_TARGET, PAPER_STEPS, plant,
+                          on_step=lambda k, res: results.append(res))
+    assert not any(r.escape or r.is_fallback for r in results)
+    np.testing.assert_array_equal(run.x, paper(mu, plant).x)
+
+
+def test_lowest_cost_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_with_penetration():
+    controller = NmpcController(ControllerSettings())
+    controller.set_regions([BLOCKER])
+    x, y_t = np.array([2.95, 0.0]), np.array([7.9])
+    nlp, par = controller.nlp, controller.parameters(x, y_t)
+    # the stalled plan: solved from a guess resting in front of the ellipse
+    w0 = nlp.fill_slacks(nlp.layout.join_w(np.zeros((5, 1)) + 2.95, np.tile(x, (5, 1)), np.array([2.95]), None), par)
+    w = nlp.solve(w0, par, np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size))[0]
+    base = Solution(w, np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size), nlp, True, plan_cost(nlp, w, par),
+                    nlp.max_depth(w, par))
+    stalled_y_a = nlp.layout.split_w(w)[2]
+    assert stalled_y_a[0] < 2.96
+    beyond = controller.escape.guesses(x, stalled_y_a, y_t, par, controller.regions)
+    assert [g.label for g in beyond][:1] == ["beyond0"] and beyond[0].y_a[0] > 3.45
+    best, tried, _ = lowest_cost(nlp, x, par, base, beyond[:1], 1.0, 1e-6)
+    assert best is not base and best.cost < base.cost and best.depth <= base.depth + 1e-4, tried
+    # a guess straight through the ellipse with a penalty weight too small to keep out: cheaper,
+    # but it penetrates, so it is refused
+    par_cheap = par.copy()
+    par_cheap[4] = 1.0  # mu
+    through = Guess("through", np.array([5.0]), np.column_stack([np.linspace(3.2, 5.0, 5), np.full(5, 0.5)]),
+                    np.zeros((5, 1)))
+    base_cheap = Solution(w, base.lam_x, base.lam_g, nlp, True, plan_cost(nlp, w, par_cheap), base.depth)
+    kept, tried, _ = lowest_cost(nlp, x, par_cheap, base_cheap, [through], 1.0, 1e-6)
+    assert kept is base_cheap, tried
+    # no time left: nothing is tried
+    kept, tried, spent = lowest_cost(nlp, x, par, base, beyond, 0.0, 1e-6)
+    assert kept is base and spent == 0.0 and all("not tried" in t for t in tried)
+
+
+def test_no_escape_without_a_region_across_the_way():
+    controller = NmpcController(ControllerSettings())
+    x, y_t = np.array([-5.0, 0.0]), np.array([5.0])
+    controller.set_regions([Ellipse((0.0, 1.5), (0.5, 0.3))])  # above the axis: no steady state inside
+    par = controller.parameters(x, y_t)
+    assert controller.escape.beyond_blocks(np.array([-5.0]), y_t, par) == []
+    assert not controller.escape.should_try(np.array([-5.0]), np.array([-5.0]), y_t, par)
+
+
+def vdp_0012_regions() -> list[Ellipse]:
+    return [Ellipse(c, a, yaw) for c, a, yaw in VDP_0012["ellipses"]]
+
+
+def test_failed_cold_start_applies_the_recovery_input_not_u0_and_stays_inside():
+    """vdp-0012: u = 0 after the failed cold start reached |x1 x2| - 2 = 4.11; now <= 1e-3."""
+    controller = NmpcController(ControllerSettings(max_solve_time=5.0))
+    results = []
+    run = run_closed_loop(controller, VDP_0012["x0"], VDP_0012["target"], 20,
+                          regions=lambda k: vdp_0012_regions() if k == 0 else None,
+                          on_step=lambda k, res: results.append(res))
+    first = results[0]
+    assert first.status == "fallback_recovery", first.fallback_reason
+    assert "safe 4.11" in first.fallback_reason and first.predicted_violation <= 1e-3
+    assert keep_in_penetration(run.x) <= 1e-3
+    assert all(r.status == "ok" for r in results[1:])
+
+
+def test_fallback_candidates_are_chosen_by_predicted_violation():
+    controller = NmpcController(ControllerSettings())
+    fallback = controller.fallback
+    par = controller.parameters(np.zeros(2), np.array([5.0]))
+    # at the origin u = 0 keeps van der Pol at rest: the safe input, no recovery solve
+    choice = fallback.choose(np.zeros(2), par, None, None, False)
+    assert choice.kind == "safe" and choice.violation == 0.0 and choice.solve_time == 0.0
+    # a plan whose inputs leave the region is kept over a steady input that does not
+    x = np.array([3.6, -0.3])
+    leaving = fallback.recover(x, par, np.zeros((5, 1)))[0]
+    choice = fallback.choose(x, par, leaving, np.array([0.0]), True)
+    assert choice.kind == "shift" and choice.violation <= 1e-3, choice.reason
+    # with the plan used up, the steady input (which predicts a violation) loses to the recovery
+    choice = fallback.choose(x, par, leaving, np.array([0.0]), False)
+    assert choice.kind == "recovery" and choice.violation < fallback.predict(x, np.zeros((5, 1)), par)[1]
+    # a configured safe input that holds the state is preferred to a steady input that does not
+    controller.set_safe_input(leaving[0])
+    choice = fallback.choose(x, par, None, np.array([6.0]), False)
+    assert choice.kind in ("safe", "recovery") and "steady" in choice.reason
+    with pytest.raises(InputError, match="input box"):
+        controller.set_safe_input([7.0])
