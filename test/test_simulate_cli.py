@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from nmpc_avoid_ros.core.status import StepStatus
 from nmpc_avoid_ros.tools.simulate import main as simulate_main
 
 
@@ -21,7 +22,7 @@ def test_simulate_json_layout_and_overrides(tmp_path, capsys):
     assert len(data["x"]) == 13 and all(len(r) == 2 for r in data["x"])
     assert data["x"][0] == [-4.0, 0.5]
     assert len(data["u"]) == 12 and len(data["y_a"]) == 12 and len(data["solve_ms"]) == 12
-    assert set(data["status"]) <= {"ok", "truncated", "fallback_shift", "fallback_steady", "fallback_safe"}
+    assert set(data["status"]) <= {status.value for status in StepStatus}
     assert data["target"][0] == [3.0]
     assert data["summary"]["steps"] == 12
     line = capsys.readouterr().out.strip()

@@ -18,6 +18,7 @@ from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.core.regions import Ellipse
 from nmpc_avoid_ros.core.settings import SOLVERS, ControllerSettings
 from nmpc_avoid_ros.core.stagewise import StagewiseNlp
+from nmpc_avoid_ros.core.status import StepStatus
 
 FAST = [s for s in SOLVERS if s != "ipopt"]
 #: the paper problem exactly: its two keep-in regions, no obstacle slots
@@ -42,8 +43,8 @@ def test_fast_path_reproduces_the_ipopt_closed_loop(solver, mu, plant):
         assert max_abs_product(run.x) <= 2.005 if plant == "euler" else max_abs_product(run.x) <= 2.0
     else:
         assert max_abs_product(run.x) == pytest.approx(max_abs_product(ref.x), rel=1e-3)
-    assert not any(s.startswith("fallback") for s in run.status)
-    assert controller.nlp_builds == 1
+    assert not any(StepStatus(s).is_fallback for s in run.status)
+    assert controller.nlp_builds == 3  # the fast solver, the cold-start reference, the fallback's recovery
 
 
 @pytest.mark.parametrize("solver", FAST)
@@ -60,14 +61,40 @@ def test_first_sample_matches_the_reference_optimum(solver):
 
 def test_obstacle_changes_never_rebuild_the_fast_path():
     controller = NmpcController(ControllerSettings(solver="sqp", max_ellipses=2, max_polygons=0))
-    solver = controller.nlp.solver
+    solver, builds = controller.nlp.solver, controller.nlp_builds
     x = np.array([-5.0, 0.0])
     for k in range(6):
         regions = [Ellipse((-3.0 + 0.3 * k, 0.5), (0.4, 0.3), 0.1 * k)]
         res = controller.step(x, [5.0], regions)
         assert res.status in ("ok", "truncated")
         x = res.states[1]
-    assert controller.nlp_builds == 1 and controller.nlp.solver is solver
+    assert controller.nlp_builds == builds == 3 and controller.nlp.solver is solver
+
+
+def test_nlp_builds_counts_every_solver_construction_and_run_time_changes_add_none(monkeypatch):
+    """nlp_builds equals the nlpsol Functions really constructed (counted at casadi.nlpsol itself)."""
+    import casadi
+
+    real, constructed = casadi.nlpsol, []
+
+    def counting_nlpsol(*args, **kwargs):
+        constructed.append(args[1])  # the plugin
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(casadi, "nlpsol", counting_nlpsol)
+    # every controller: its path's solver and the fallback's recovery solve (IPOPT); a fast path also
+    # the cold-start reference (IPOPT); sqp with a real-time budget also its own cold-budget copy
+    expected = {("ipopt", 200): ["ipopt", "ipopt"], ("fatrop", 200): ["fatrop", "ipopt", "ipopt"],
+                ("sqp", 5): ["sqpmethod", "sqpmethod", "ipopt", "ipopt"]}
+    for (solver, budget), plugins in expected.items():
+        constructed.clear()
+        controller = NmpcController(PAPER.replace(solver=solver, max_iterations=budget, max_ellipses=1))
+        assert sorted(constructed) == sorted(plugins) and controller.nlp_builds == len(plugins), solver
+        x = np.array([-5.0, 0.0])
+        for k, target in enumerate((5.0, -3.0, 2.0)):  # new targets, obstacles, weights: no construction
+            controller.update_settings(mu=10.0 ** (4 + 2 * k), kappa=10.0 ** (3 + k), state_weights=(1.0, 2.0))
+            x = controller.step(x, [target], [Ellipse((-3.0 + k, 1.0), (0.4, 0.3))]).states[1]
+        assert len(constructed) == controller.nlp_builds == len(plugins), solver
 
 
 def test_compiled_solver_is_cached_by_structure(tmp_path):

@@ -23,6 +23,7 @@ from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase, TrackingNlp
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
 from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
+from .status import StepStatus
 
 #: samples without a new escape attempt after one that found no better plan (the scene is static)
 ESCAPE_RETRY_SAMPLES = 10
@@ -48,8 +49,9 @@ class StepResult:
         inputs: predicted inputs u(0..N-1) [N, m].
         y_a, x_a, u_a: artificial steady output [p], state [n], input [m].
         offset_cost, avoidance_cost, tracking_cost: V_o, V_a and the stage-cost sum of the plan.
-        status: 'ok' (solved), 'truncated' (budget cut, feasible iterate used), 'fallback_shift',
-            'fallback_steady', 'fallback_safe' or 'fallback_recovery' (see core/fallback.py).
+        status: what was applied (core/status.py): ok (solved), truncated (budget cut, feasible
+            iterate used), fallback_shift, fallback_steady, fallback_safe or fallback_recovery
+            (see core/fallback.py).
         solver_status: the solver's own return status.
         iterations: solver iterations; solve_time: wall time of the solve in s.
         budget_exhausted: True when the iteration or time budget cut the solve.
@@ -68,7 +70,7 @@ class StepResult:
     offset_cost: float
     avoidance_cost: float
     tracking_cost: float
-    status: str
+    status: StepStatus
     solver_status: str
     iterations: int
     solve_time: float
@@ -79,7 +81,7 @@ class StepResult:
 
     @property
     def is_fallback(self) -> bool:
-        return self.status.startswith("fallback")
+        return StepStatus(self.status).is_fallback
 
 
 @dataclass
@@ -156,7 +158,6 @@ class NmpcController:
                                                                             COLD_START_ITERATIONS),
                                          max_solve_time=self.settings.max_solve_time * COLD_START_TIME_FACTOR)
             self.cold_nlp = TrackingNlp(cold, self.model)
-        self.nlp_builds = 1
         self._regions: tuple[Region, ...] = ()
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
@@ -174,6 +175,17 @@ class NmpcController:
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
+
+    @property
+    def nlp_builds(self) -> int:
+        """How many solvers (CasADi nlpsol Functions) this controller has constructed.
+
+        Counted where each is built (`solver_builds` of NlpBase and FallbackSelector): the solver
+        path's own, a fast path's copy with the cold-start budget, the fast paths' cold-start
+        reference (IPOPT) and the fallback's recovery solve. All are built in the constructor:
+        nothing at run time (a target, obstacles, mu, the weights) adds to it.
+        """
+        return sum(part.solver_builds for part in (self.nlp, self.cold_nlp, self.fallback) if part is not None)
 
     # -- run-time changes (never rebuild) ---------------------------------------------------
     @property
@@ -255,7 +267,7 @@ class NmpcController:
         if best.nlp is not self.nlp:  # solved by the reference: the fast path's multipliers start from zero
             lam_x, lam_g = np.zeros(self.nlp.layout.n_w), np.zeros(self.nlp.lbg.size)
         plan = self._accept(x, best.w, par, lam_x, lam_g, best.nlp)
-        status = "ok" if best.solved else "truncated"
+        status = StepStatus.OK if best.solved else StepStatus.TRUNCATED
         result = self._result(plan, x, 0, status, attempt.solver_status, attempt.iterations, solve_time,
                               attempt.budget_cut)
         result.escape = escape
@@ -318,7 +330,7 @@ class NmpcController:
 
         The plan ages by one sample, so the next `step` shifts its warm start accordingly; the
         result's first state is the plan's prediction for now. None when there is no plan yet.
-        Status 'fallback_shift' (or 'fallback_steady' once the plan is used up), solver status
+        Status FALLBACK_SHIFT (or FALLBACK_STEADY once the plan is used up), solver status
         'no_new_state'.
         """
         plan = self._plan
@@ -327,7 +339,7 @@ class NmpcController:
         plan.age += 1
         N = self.nlp.layout.horizon
         predicted = plan.states[plan.age] if plan.age <= N else plan.x_a
-        status = "fallback_shift" if plan.age < N else "fallback_steady"
+        status = StepStatus.FALLBACK_SHIFT if plan.age < N else StepStatus.FALLBACK_STEADY
         return self._result(plan, predicted, plan.age, status, "no_new_state", 0, 0.0, False)
 
     def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray,
@@ -402,20 +414,20 @@ class NmpcController:
         choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N)
         solve_time += choice.solve_time
         if plan is not None and choice.kind in ("shift", "steady"):
-            result = self._result(plan, x, plan.age, f"fallback_{choice.kind}", solver_status, iterations,
+            result = self._result(plan, x, plan.age, StepStatus(f"fallback_{choice.kind}"), solver_status, iterations,
                                   solve_time, budget_cut)
         else:
             nan_p = np.full(self.model.p, np.nan) if plan is None else plan.y_a.copy()
             nan_n = np.full(self.model.n, np.nan) if plan is None else plan.x_a.copy()
             u_a_out = choice.inputs[0].copy() if plan is None else plan.u_a.copy()
             result = StepResult(choice.inputs[0].copy(), choice.states, choice.inputs.copy(), nan_p, nan_n, u_a_out,
-                                math.nan, math.nan, math.nan, f"fallback_{choice.kind}", solver_status,
+                                math.nan, math.nan, math.nan, StepStatus(f"fallback_{choice.kind}"), solver_status,
                                 iterations, solve_time, budget_cut)
         result.fallback_reason = choice.reason
         result.predicted_violation = choice.violation
         return result
 
-    def _result(self, plan: _Plan, x: np.ndarray, age: int, status: str, solver_status: str, iterations: int,
+    def _result(self, plan: _Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
                 solve_time: float, budget_cut: bool) -> StepResult:
         N = self.nlp.layout.horizon
         inputs = np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))])

@@ -90,6 +90,8 @@ class FallbackSelector:
                    "ipopt": {"print_level": 0, "sb": "yes", "max_iter": RECOVERY_ITERATIONS,
                              "max_wall_time": settings.max_solve_time, "tol": 1e-8}}
         self._recovery = ca.nlpsol("fallback_recovery", "ipopt", problem, options)
+        #: solvers constructed here (NmpcController.nlp_builds counts them): the recovery solve
+        self.solver_builds = 1
         lo, hi = np.array(settings.input_min, float), np.array(settings.input_max, float)
         self._lbx = np.concatenate([np.tile(lo, H), np.zeros(slack.numel())])
         self._ubx = np.concatenate([np.tile(hi, H), np.full(slack.numel(), np.inf)])

@@ -280,6 +280,15 @@ class NlpBase:
             return 0.0
         return float(np.max(self._slack_value(w, par)[0]))
 
+    #: solvers this formulation has constructed (each make_solver call); NmpcController.nlp_builds sums them
+    solver_builds: int = 0
+
+    def _make_solver(self, problem: dict, settings: ControllerSettings,
+                     stages: dict[str, list[int]] | None = None) -> tuple[ca.Function, dict]:
+        """make_solver for this formulation's constraints, counted in solver_builds."""
+        self.solver_builds += 1
+        return make_solver(problem, settings, self.lbg == self.ubg, stages)
+
     def fill_slacks(self, w: np.ndarray, par: np.ndarray) -> np.ndarray:
         """w with its slacks set to max(0, depth) of its own states (the tightest feasible slacks)."""
         if self._slack_index.size:
@@ -406,7 +415,7 @@ class TrackingNlp(NlpBase):
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
 
         nlp = {"x": w, "p": par, "f": cost, "g": ca.vertcat(*g)}
-        self.solver, self.solver_info = make_solver(nlp, s, self.lbg == self.ubg)
+        self.solver, self.solver_info = self._make_solver(nlp, s)
         self.terms = Buffered(ca.Function("terms", [w, par], [v_offset, v_avoid, tracking]))
         self.steady = Buffered(ca.Function("steady", [w], [x_a, u_a]))
         self.constraint_values = Buffered(ca.Function("constraints", [w, par], [ca.vertcat(*g)]))

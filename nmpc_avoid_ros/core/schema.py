@@ -115,7 +115,7 @@ class Setting:
         elif kind == "str":
             ok = isinstance(item, str) and (not self.choices or item in self.choices)
             if isinstance(item, str) and not ok:
-                raise ConfigError(f"{self.name}: unknown {_short(item)}; {self.rule()}")
+                raise ConfigError(f"{self.name} must be {self.rule()}; unknown {_short(item)}")
         elif kind == "int":
             ok = isinstance(item, numbers.Integral) and not isinstance(item, bool)
             item = int(item) if ok else item

@@ -30,7 +30,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .models import Model, make_model
-from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, check_sizes, depth_function, make_solver, problem_parts
+from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, check_sizes, depth_function, problem_parts
 from .settings import ControllerSettings
 
 #: iteration budget of a cold start (no previous plan), also in core/controller.py
@@ -188,12 +188,11 @@ class StagewiseNlp(NlpBase):
                   "nu": [int(stage_start[k + 1] - stage_start[k] - n - p) for k in range(N)] + [0],
                   "ng": [int(g_start[k + 1] - g_start[k]) - (n + p if k < N else 0) for k in range(N + 1)]}
         problem = {"x": w, "p": par, "f": cost, "g": g}
-        self.solver, self.solver_info = make_solver(problem, s, self.lbg == self.ubg, stages)
+        self.solver, self.solver_info = self._make_solver(problem, s, stages)
         if s.solver.startswith("sqp") and s.max_iterations < COLD_START_ITERATIONS:
             # a real-time budget is too small for a cold start: the same solver (and compiled
             # library) with the cold-start budget gets the first sample
-            self.cold_solver, _ = make_solver(problem, s.replace(max_iterations=COLD_START_ITERATIONS),
-                                              self.lbg == self.ubg, stages)
+            self.cold_solver, _ = self._make_solver(problem, s.replace(max_iterations=COLD_START_ITERATIONS), stages)
         x_a0, u_a0 = steady(Y[0])
         self.terms = Buffered(ca.Function("terms", [w, par], [v_offset, v_avoid, tracking]))
         self.steady = Buffered(ca.Function("steady", [w], [x_a0, u_a0]))

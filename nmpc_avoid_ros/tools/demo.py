@@ -23,6 +23,7 @@ import numpy as np
 from ..core.errors import NmpcError
 from ..core.metrics import SETTLING_TOLERANCE, settling_step
 from ..core.settings import default_config_path
+from ..core.status import StepStatus
 from .analyze import analyze
 from .processes import NodeProcess
 from .simulate import load_scenario, simulate
@@ -147,7 +148,7 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
             "final_error": float(abs(x[-1, 0] - scenario.target[0])),
             "solve_ms_median": float(np.median(data["solve_ms"])),
             "solve_ms_max": float(np.max(data["solve_ms"])),
-            "fallbacks": sum(s.startswith("fallback") for s in data["status"]),
+            "fallbacks": sum(StepStatus(s).is_fallback for s in data["status"]),
             "offline_reference": {k: offline_summary[k] for k in ("settling_step", "max_abs_x1x2")},
         }
         if lockstep:

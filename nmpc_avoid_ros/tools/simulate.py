@@ -21,6 +21,7 @@ from ..core.errors import NmpcError
 from ..core.metrics import max_abs_product, outputs, tracking
 from ..core.models import Model
 from ..core.settings import SOLVER_PATHS, ControllerSettings, default_config_path, load_params_file
+from ..core.status import StepStatus
 
 
 @dataclass
@@ -71,8 +72,8 @@ def summarize(run: ClosedLoopRun, target: list[float], model: Model) -> dict[str
         "final_error": quality["final_error"],
         "solve_ms_median": float(np.median(run.solve_time) * 1e3),
         "solve_ms_max": float(np.max(run.solve_time) * 1e3),
-        "fallbacks": sum(s.startswith("fallback") for s in run.status),
-        "failures": sum(s != "ok" for s in run.status),
+        "fallbacks": sum(StepStatus(s).is_fallback for s in run.status),
+        "failures": sum(s != StepStatus.OK for s in run.status),
         "nlp_builds": run.info.get("nlp_builds"),
     }
     if x.shape[1] >= 2:

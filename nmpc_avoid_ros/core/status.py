@@ -1,0 +1,40 @@
+"""The status of one controller sample: the one definition of the strings in results, JSON and bags.
+
+`StepStatus` is a StrEnum: each member is its string ('ok', 'fallback_shift', ...), so it compares
+equal to the text read back from a JSON file or a diagnostics message, and `json.dumps` and the
+ROS messages carry the plain string. Read a recorded string back with `StepStatus(text)`.
+
+A new fallback is added as one member named FALLBACK_<NAME> with the value 'fallback_<name>':
+`is_fallback` recognises it by that prefix (diagnostics then report it as a WARN and count it).
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+
+class StepStatus(StrEnum):
+    """What one sample applied."""
+
+    #: solved: the solver's solution is applied
+    OK = "ok"
+    #: the iteration or time budget cut the solve; its iterate is applied because it is feasible
+    TRUNCATED = "truncated"
+    #: no usable solve: the next input of the shifted previous plan (the paper's feasibility candidate)
+    FALLBACK_SHIFT = "fallback_shift"
+    #: no usable solve and the previous plan is used up: its steady input u_a
+    FALLBACK_STEADY = "fallback_steady"
+    #: no usable solve and no plan at all: the safe input (zero clipped to the input box)
+    FALLBACK_SAFE = "fallback_safe"
+    #: every other candidate predicts a violation: a short solve minimising it (core/fallback.py)
+    FALLBACK_RECOVERY = "fallback_recovery"
+
+    @property
+    def is_fallback(self) -> bool:
+        """The sample did not apply a solve of this sample's problem."""
+        return self.value.startswith("fallback_")
+
+    @property
+    def is_usable(self) -> bool:
+        """The sample applied a solve (converged, or a feasible budget-cut iterate)."""
+        return not self.is_fallback
