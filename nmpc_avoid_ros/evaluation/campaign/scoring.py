@@ -37,7 +37,16 @@ import numpy as np
 from ...core.closed_loop import ClosedLoopRun, run_closed_loop
 from ...core.controller import SOLVED, NmpcController
 from ...core.errors import NmpcError
-from ...core.metrics import SETTLING_TOLERANCE, outputs, penetration, settling_step, time_stats
+from ...core.fallback import CANDIDATES as FALLBACK_CANDIDATES
+from ...core.metrics import (
+    SETTLING_TOLERANCE,
+    keep_in_values,
+    outputs,
+    penetration,
+    region_values,
+    settling_step,
+    time_stats,
+)
 from ...core.models import Model
 from ...core.regions import Region
 from ...core.settings import ControllerSettings
@@ -56,7 +65,12 @@ PROBE_ITERATIONS = 1000
 PROBE_SOLVE_TIME = 20.0
 USABLE = ("ok", "truncated")
 #: one character per sample in the stored trace
-STATUS_CODES = {"ok": ".", "truncated": "t", "fallback_shift": "s", "fallback_steady": "S", "fallback_safe": "X"}
+STATUS_CODES = {"ok": ".", "truncated": "t", "fallback_shift": "s", "fallback_steady": "S", "fallback_safe": "X",
+                "fallback_recovery": "R"}
+#: the fallback candidates (core/fallback.py), as statuses
+FALLBACK_KINDS = tuple(f"fallback_{kind}" for kind in FALLBACK_CANDIDATES)
+#: penetration from this sample on is where the input can act (x(1) is fixed by x(0), u(0) partly)
+FIRST_ACTED_SAMPLE = 2
 #: record fields measured in wall time (machine- and load-dependent); ('trace', 'solve_ms') is nested
 TIMED_FIELDS = ("wall_s", "solve_ms", ("trace", "solve_ms"))
 #: what may end a closed loop early (a non-finite plant state refused by the controller, a failed integration)
@@ -180,7 +194,7 @@ def solver_section(s: Scored) -> dict[str, Any]:
     usable = [st in USABLE for st in run.status]
     pairs = sum(usable[k - 1] for k in range(1, K))
     kept = sum(usable[k - 1] and usable[k] for k in range(1, K))
-    fallbacks = {kind: run.status.count(kind) for kind in ("fallback_shift", "fallback_steady", "fallback_safe")}
+    fallbacks = {kind: run.status.count(kind) for kind in FALLBACK_KINDS}
     return {
         "samples": K, "ok": run.status.count("ok"), "truncated": run.status.count("truncated"),
         "solver_failures": int(sum(st not in SOLVED for st in run.solver_status)),
@@ -196,6 +210,28 @@ def solver_section(s: Scored) -> dict[str, Any]:
     }
 
 
+def robustness_section(s: Scored) -> dict[str, Any]:
+    """Penetration where the input can act and after fallbacks; local-minimum escapes.
+
+    penetration_after_first_step: max g over x(2..K) (0 if never inside); fallback_penetration: max
+    g over the `horizon` states after each fallback sample (0 without fallbacks); escapes_tried:
+    samples that solved escape guesses; escapes_taken: samples whose plan came from one.
+    """
+    run = s.run
+    keep = keep_in_values(s.settings, s.model, run.x, run.u)
+    g = region_values(s.settings, run.x, s.y, run.regions)
+    if keep.size:
+        g = np.maximum(g, keep.max(axis=1))
+    after_fallback = [float(np.max(g[k + 1:k + 1 + s.settings.horizon]))
+                      for k, st in enumerate(run.status) if st.startswith("fallback")]
+    return {
+        "penetration_after_first_step": max(0.0, float(np.max(g[FIRST_ACTED_SAMPLE:], initial=-math.inf))),
+        "fallback_penetration": max([0.0, *after_fallback]),
+        "escapes_tried": sum(bool(e) for e in run.escapes),
+        "escapes_taken": sum(bool(e) and not e.startswith("shifted") for e in run.escapes),
+    }
+
+
 def trace_section(s: Scored) -> dict[str, Any]:
     """The trajectory kept for the figures (states to 6 digits, solve times, one status code per sample)."""
     return {"trace": {"x": [_vec(r, 6) for r in s.run.x], "solve_ms": _vec(s.run.solve_time * 1e3, 3),
@@ -204,7 +240,7 @@ def trace_section(s: Scored) -> dict[str, Any]:
 
 #: the parts of a record, in order; each maps a scored run to some of its fields
 RECORD_SECTIONS: tuple[Callable[[Scored], dict[str, Any]], ...] = (
-    outcome_section, avoidance_section, solver_section, trace_section)
+    outcome_section, avoidance_section, solver_section, robustness_section, trace_section)
 
 
 def classify(record: dict[str, Any]) -> dict[str, Any]:
@@ -223,6 +259,10 @@ def classify(record: dict[str, Any]) -> dict[str, Any]:
 
 def _share(flags: Sequence[bool]) -> float | None:
     return float(np.mean(flags)) if len(flags) else None
+
+
+def _max(values: Sequence[float]) -> float | None:
+    return float(max(values)) if values else None
 
 
 def _stats(values: Sequence[float]) -> dict[str, float | None]:
@@ -245,6 +285,7 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     short = [r for r in records if r["stop_short"]]
     pairs = sum(r["rf_pairs"] for r in records)
     worst = max(finished, key=lambda r: r["max_penetration"])
+    feasible_start = [r for r in finished if r["x0_in_feasible_set"] == "feasible"]
     causes: dict[str, int] = {}
     for r in short:
         causes[r["stop_short_cause"]] = causes.get(r["stop_short_cause"], 0) + 1
@@ -273,8 +314,17 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "solver_failures": sum(r["solver_failures"] for r in records),
         "truncated": sum(r["truncated"] for r in records),
         "fallbacks": sum(r["fallbacks"] for r in records),
-        "fallback_kinds": {k: sum(r["fallback_kinds"][k] for r in records)
-                           for k in ("fallback_shift", "fallback_steady", "fallback_safe")},
+        "fallback_kinds": {k: sum(r["fallback_kinds"].get(k, 0) for r in records) for k in FALLBACK_KINDS},
+        "penetration_after_first_step": _max([r["penetration_after_first_step"] for r in feasible_start]),
+        "penetration_after_first_step_all_runs": _max([r["penetration_after_first_step"] for r in finished]),
+        "runs_penetrating_after_first_step_over_1e-3": sum(r["penetration_after_first_step"] > 1e-3
+                                                          for r in feasible_start),
+        "fallback_penetration": _max([r["fallback_penetration"] for r in finished]),
+        "escapes_tried": sum(r["escapes_tried"] for r in records),
+        "escapes_taken": sum(r["escapes_taken"] for r in records),
+        "runs_with_escape_taken": sum(r["escapes_taken"] > 0 for r in records),
+        "solve_ms": time_stats(np.concatenate([r["trace"]["solve_ms"] for r in records]))
+        if all("trace" in r for r in records) else None,
         "runs_with_fallback": sum(r["fallbacks"] > 0 for r in records),
         "runs_with_solver_failure": sum(r["solver_failures"] > 0 for r in records),
         "first_solve_failed": sum(not r["initial_feasible"] for r in records),
@@ -319,7 +369,14 @@ DEFINITIONS = {
     "solver_failure": "sample whose IPOPT status is not Solve_Succeeded / Solved_To_Acceptable_Level",
     "stopped_early": "the closed loop ended before its last sample (e.g. the plant state became non-finite); such "
                      "runs count as not converged and are left out of max_penetration",
-    "fallback": "sample that applied the controller's fallback (shift, steady or safe input)",
+    "fallback": "sample that applied the controller's fallback (shift, steady, safe input or recovery solve: the "
+                "candidate predicting the least violation, core/fallback.py)",
+    "penetration_after_first_step": "max over runs (x0 in X_N, not stopped early) of the largest g over x(2..K), "
+                                    "where the input can act; 0 if never inside",
+    "fallback_penetration": "max over runs and fallback samples k of the largest g over x(k+1..k+N)",
+    "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/candidates.py); "
+               "escapes_taken: samples whose plan came from one",
+    "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
     "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
                           "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",
     "recursive_feasibility_rate": "P(solve k usable | solve k-1 usable), usable = status ok or truncated",
@@ -351,7 +408,14 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"x0 outside X_N {s['x0_infeasible']}, unknown {s['x0_feasibility_unknown']})",
             f"  stop short {s['stop_short']} {s['stop_short_causes']} distance median "
             f"{_fmt(ss['median'])} max {_fmt(ss['max'])}; solve max {s['solve_ms_max']:.0f} ms",
+            f"  penetration after the first step {_fmt(s['penetration_after_first_step'])} (x0 in X_N; all runs "
+            f"{_fmt(s['penetration_after_first_step_all_runs'])}), after fallbacks {_fmt(s['fallback_penetration'])}; "
+            f"fallbacks by candidate {s['fallback_kinds']}; escapes tried {s['escapes_tried']}, taken "
+            f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs",
         ]
+        if s.get("solve_ms"):
+            t = s["solve_ms"]
+            lines.append(f"  solve ms median {t['median']:.3g}, p99 {t['p99']:.3g}, max {t['max']:.3g}")
     return "\n".join(lines)
 
 
