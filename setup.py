@@ -5,7 +5,9 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "nmpc_avoid_ros"
-EXECUTABLES = ("controller", "plant", "recorder", "simulate", "figures", "analyze", "replay", "demo")
+#: every command of nmpc_avoid_ros/cli.py COMMANDS (test_readme.py keeps README, cli and this list equal)
+EXECUTABLES = ("controller", "plant", "recorder", "simulate", "figures", "analyze", "replay", "demo", "bench",
+               "campaign")
 
 setup(
     name=PACKAGE,

@@ -46,6 +46,8 @@ replay_main = _entry("replay")
 simulate_main = _entry("simulate")
 figures_main = _entry("figures")
 demo_main = _entry("demo")
+bench_main = _entry("bench")
+campaign_main = _entry("campaign")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -71,7 +71,7 @@ def test_peer_reproduces_the_paper_scenario_like_ours(variant, mu):
 
 
 def test_do_mpc_default_warm_start_stalls_without_avoidance():
-    """DESIGN.md section 2: the unshifted warm start leaves the loop stuck short of the target."""
+    """docs/design.md ("Measured pitfalls"): the unshifted warm start leaves the loop stuck short of the target."""
     run = paper_run("do_mpc_unshifted", 0.0)
     assert settled(run) is None
     assert abs(run.x[-1, 0] - TARGET[0]) > 1.0

@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from nmpc_avoid_ros.cli import COMMANDS
+
 ROOT = Path(__file__).resolve().parents[1]
 COLCON = Path(sys.executable).parent / "colcon"
-EXECUTABLES = ("controller", "plant", "recorder", "simulate", "figures", "analyze", "replay", "demo")
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,7 @@ def installed(tmp_path_factory) -> Path:
     return ws / "install" / "nmpc_avoid_ros"
 
 
-@pytest.mark.parametrize("name", EXECUTABLES)
+@pytest.mark.parametrize("name", sorted(COMMANDS))
 def test_executables_land_where_ros2_run_looks_and_answer_help(installed, name):
     exe = installed / "lib" / "nmpc_avoid_ros" / name
     assert exe.is_file() and os.access(exe, os.X_OK)

@@ -1,4 +1,4 @@
-"""DESIGN.md section 3: `core` never imports ROS (rclpy or any message package)."""
+"""docs/design.md ("Layers"): `core` never imports ROS (rclpy or any message package)."""
 
 from __future__ import annotations
 

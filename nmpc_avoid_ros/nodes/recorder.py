@@ -181,8 +181,9 @@ class RecorderNode(Node):
     # ---- topics
 
     def _qos_for(self, topic: str, current: QoSProfile | None = None) -> QoSProfile:
-        """DESIGN.md QoS of a topic, weakened where a publisher (or the `current` subscription) is weaker:
-        best effort if any publisher is, volatile (with depth `queue_depth`) if any publisher is."""
+        """The package's QoS of a topic (docs/design.md, "Interfaces"), weakened where a publisher (or
+        the `current` subscription) is weaker: best effort if any publisher is, volatile (with depth
+        `queue_depth`) if any publisher is."""
         best_effort = current is not None and current.reliability == ReliabilityPolicy.BEST_EFFORT
         volatile = topic not in self.latched or (current is not None and
                                                  current.durability == DurabilityPolicy.VOLATILE)

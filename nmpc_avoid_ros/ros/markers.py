@@ -1,4 +1,4 @@
-"""Obstacle regions as visualization_msgs markers (DESIGN.md section 4).
+"""Obstacle regions as visualization_msgs markers (docs/design.md, "Interfaces").
 
 The `obstacles` topic carries a MarkerArray, so RViz and Foxglove draw exactly what the
 controller avoids. `RegionStore` applies those messages with RViz's semantics:
