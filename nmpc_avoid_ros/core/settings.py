@@ -181,6 +181,10 @@ class NodeSettings:
                                     "plant)")
     log_throttle: float = setting(2.0, "minimum seconds between repeated warnings of one kind", runtime=True,
                                   low=0.0, high=3600.0)
+    autostart: bool = setting(True, "walk the lifecycle to active at start-up (false: wait for a lifecycle "
+                                    "manager's configure and activate)")
+    deactivate_command: str = setting("zero", "the one command published when an active controller is "
+                                              "deactivated or shut down", runtime=True, choices=STALE_BEHAVIORS)
 
     def __post_init__(self) -> None:
         normalise(self)

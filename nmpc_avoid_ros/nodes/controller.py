@@ -2,6 +2,15 @@
 
     ros2 run nmpc_avoid_ros controller --ros-args --params-file config/van_der_pol.yaml
 
+A managed (lifecycle) node: parameters are declared at creation; `configure` reads them and builds
+(or loads from the cache) the solver, its publishers and the target/obstacle subscriptions;
+`activate` starts the state subscription and the samples; `deactivate` stops the samples at once
+and publishes one `deactivate_command`; `cleanup`/`shutdown` release the solver and every
+publisher and subscription. With `autostart` (default) the node walks itself to active, so
+`ros2 run` alone controls; with `autostart: false` a lifecycle manager (or `ros2 lifecycle set`)
+drives it through the standard lifecycle_msgs services.
+
+
 Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the
 latest state. A sample that finds no new state since the last solve (lost or late messages)
 applies the next input of the last plan (core `coast`, the shifted plan of the paper's
@@ -23,23 +32,24 @@ from __future__ import annotations
 
 import math
 import time
+import traceback
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.node import Node
+from rclpy.exceptions import ParameterUninitializedException
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from ..core.controller import NmpcController, StepResult
-from ..core.errors import InputError, NmpcError
+from ..core.errors import ConfigError, InputError, NmpcError
 from ..core.settings import NODE_SETTINGS, SETTINGS, NodeSettings
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.markers import RegionStore
 from ..ros.parameters import (
-    LATCHED_QOS,
     STREAM_QOS,
     declare,
     finite_vector,
@@ -48,58 +58,94 @@ from ..ros.parameters import (
     settings_from_values,
     settings_specs,
 )
+from ..ros.qos import LatchedSubscription
 from .runner import run_node
 
 #: the node's own parameters (declared in core/settings.py NodeSettings)
 NODE_SPECS = node_settings_specs()
 
+SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
-class ControllerNode(Node):
-    """Thin node: converts messages, calls the core controller, publishes. Built once in __init__."""
+
+class ControllerNode(LifecycleNode):
+    """Thin managed node: converts messages, calls the core controller, publishes.
+
+    The solver is built once, in `on_configure`; sample callbacks only convert, solve and publish.
+    """
 
     def __init__(self, **kwargs) -> None:
         super().__init__("controller", **kwargs)
-        values = declare(self, settings_specs() + NODE_SPECS)
+        self.values = declare(self, settings_specs() + NODE_SPECS)
+        self.options = node_settings_from_values(self.values)
+        self.add_on_set_parameters_callback(self.on_set_parameters)
+        self.controller: NmpcController | None = None  # built in on_configure, released in on_cleanup
+        self.active = False
+        self.timer = None
+        self.state_subscription = None
+        self.configure_error = ""
+        if self.options.autostart:
+            if self.trigger_configure() != SUCCESS:
+                raise ConfigError(self.configure_error)
+            self.trigger_activate()
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def parameter_values(self) -> dict:
+        """Current value of every declared parameter (set since start-up by `ros2 param set` included)."""
+        values = {}
+        for name in self.values:
+            try:
+                values[name] = self.get_parameter(name).value
+            except ParameterUninitializedException:  # declared with a type, never set
+                values[name] = None
+        return values
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Read the parameters, build (or load) the solver, create publishers and latched inputs."""
+        try:
+            self.configure(self.parameter_values())
+        except (NmpcError, ValueError) as exc:
+            self.configure_error = str(exc)
+            self.get_logger().error(f"configure failed: {exc}")
+            self.controller = None
+            return FAILURE
+        except Exception:  # rclpy would turn it into ERROR without a word: say what broke
+            self.configure_error = traceback.format_exc()
+            self.get_logger().error(f"configure failed:\n{self.configure_error}")
+            self.controller = None
+            return FAILURE
+        return SUCCESS
+
+    def configure(self, values: dict) -> None:
         self.options = node_settings_from_values(values)
         build_started = time.perf_counter()
-        self.controller = NmpcController(settings_from_values(values))  # the one NLP build
+        controller = NmpcController(settings_from_values(values))  # the one NLP build
         self.build_seconds = time.perf_counter() - build_started
-        model = self.controller.model
+        model = controller.model
         self.n, self.m, self.p = model.n, model.m, model.p
-        s = self.controller.settings
+        s = controller.settings
         self.store = RegionStore(max_ellipses=s.max_ellipses, max_polygons=s.max_polygons,
                                  max_polygon_vertices=s.max_polygon_vertices,
-                                 output_frame_available=self.controller.nlp.output_frame_available)
+                                 output_frame_available=controller.nlp.output_frame_available)
         self.regions_revision = self.store.revision
         self.target: np.ndarray | None = None
         if self.options.target is not None:
             self.target = np.asarray(finite_vector(self.options.target, self.p, "target"))
         self.safe_input = self._safe_input(self.options)
         self.lockstep = self.options.lockstep  # read-only: fixed for the node's life
-
-        self.state: np.ndarray | None = None
-        self.state_time: float | None = None  # node-clock seconds of the last good state
-        self.state_solved = True  # lockstep: has the latest state been answered?
-        self.started = self.now()
+        self.controller = controller
+        self.reset_loop()
         self.last_result: StepResult | None = None
         self.last_command = np.zeros(self.m)
         self.counts = {"samples": 0, "fallbacks": 0, "rejected_inputs": 0, "deadline_overruns": 0, "stale": 0,
                        "states_received": 0, "missed_samples": 0, "stale_episodes": 0}
-        self.fresh_state = False  # a good state arrived since the last solve
         self.max_state_gap = 0.0  # s, longest interval between two good states
-        self.stale_since: float | None = None  # node-clock time the current stale episode began
         self.last_stale = 0.0  # s, length of the last stale episode that ended
-        self.state_age = math.nan  # s, age of the state at the start of the last sample
 
         self.pub_command = self.create_publisher(Float64MultiArray, "command", STREAM_QOS)
         self.pub_prediction = self.create_publisher(Path, "~/prediction", STREAM_QOS)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
-        self.create_subscription(Float64MultiArray, "state", self.on_state, STREAM_QOS)
-        self.create_subscription(Float64MultiArray, "target", self.on_target, LATCHED_QOS)
-        self.create_subscription(MarkerArray, "obstacles", self.on_obstacles, LATCHED_QOS)
-        self.add_on_set_parameters_callback(self.on_set_parameters)
-        if not self.lockstep:
-            self.timer = self.create_timer(s.sample_time, self.on_sample)
+        self.latched_inputs = [LatchedSubscription(self, Float64MultiArray, "target", self.on_target),
+                               LatchedSubscription(self, MarkerArray, "obstacles", self.on_obstacles)]
         self.get_logger().info(
             f"controller ready: model={s.model} N={s.horizon} Ts={s.sample_time}s {s.discretization} "
             f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
@@ -107,6 +153,67 @@ class ControllerNode(Node):
             f"target={None if self.target is None else self.target.tolist()} "
             f"solver built in {self.build_seconds:.2f} s{self._cache_note()}"
         )
+
+    def reset_loop(self) -> None:
+        """Forget the measured state: after (re)activation the loop waits for a fresh one."""
+        self.state: np.ndarray | None = None
+        self.state_time: float | None = None  # node-clock seconds of the last good state
+        self.state_solved = True  # lockstep: has the latest state been answered?
+        self.fresh_state = False  # a good state arrived since the last solve
+        self.stale_since: float | None = None  # node-clock time the current stale episode began
+        self.state_age = math.nan  # s, age of the state at the start of the last sample
+        self.started = self.now()
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Start the state subscription and the samples (timer, or each state in lockstep)."""
+        self.reset_loop()
+        self.state_subscription = self.create_subscription(Float64MultiArray, "state", self.on_state, STREAM_QOS)
+        if not self.lockstep:
+            self.timer = self.create_timer(self.controller.settings.sample_time, self.on_sample)
+        self.active = True
+        self.get_logger().info("controller active")
+        return SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop the samples now and publish one `deactivate_command`."""
+        self.stop_samples()
+        self.get_logger().info("controller inactive")
+        return SUCCESS
+
+    def stop_samples(self) -> None:
+        # the executor runs one callback at a time: once this returns, no sample is running or due
+        self.active = False
+        if self.timer is not None:
+            self.destroy_timer(self.timer)
+            self.timer = None
+        if self.state_subscription is not None:
+            self.destroy_subscription(self.state_subscription)
+            self.state_subscription = None
+        u = self.safe_command(self.options.deactivate_command)
+        self.send_command(u)
+        self.get_logger().info(f"samples stopped: sent {self.options.deactivate_command} {u.tolist()}")
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Release the solver, the publishers and the latched inputs (back to unconfigured)."""
+        self.release()
+        return SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.active:
+            self.stop_samples()
+        self.release()
+        return SUCCESS
+
+    def release(self) -> None:
+        if self.controller is None:
+            return
+        for latched in self.latched_inputs:
+            latched.destroy()
+        for publisher in (self.pub_command, self.pub_prediction, self.pub_diagnostics):
+            self.destroy_publisher(publisher)
+        self.latched_inputs = []
+        self.controller = None
+        self.get_logger().info("controller released its solver, publishers and subscriptions")
 
     def _cache_note(self) -> str:
         info = self.controller.nlp.solver_info
@@ -145,7 +252,7 @@ class ControllerNode(Node):
             self.reject("target", str(exc))
             return
         self.get_logger().info(f"target y_t = {self.target.tolist()}")
-        if self.lockstep and not self.state_solved:
+        if self.lockstep and self.active and not self.state_solved:
             self.on_sample()
 
     def on_obstacles(self, msg: MarkerArray) -> None:
@@ -164,9 +271,14 @@ class ControllerNode(Node):
         the settings (use_sim_time) are rclpy's own and pass through.
         """
         values = {param.name: param.value for param in params}
+        settings_changes = {k: v for k, v in values.items() if k in SETTINGS}
         try:
-            settings = self.controller.checked_settings(**{k: v for k, v in values.items() if k in SETTINGS})
             options = self.options.replace(**{k: v for k, v in values.items() if k in NODE_SETTINGS})
+            if self.controller is None:  # unconfigured: checked here, applied by configure
+                settings_from_values({**self.parameter_values(), **settings_changes})
+                self.options = options
+                return SetParametersResult(successful=True)
+            settings = self.controller.checked_settings(**settings_changes)
             safe_input = self._safe_input(options)
             target = None if options.target is None else np.asarray(finite_vector(options.target, self.p, "target"))
         except ValueError as exc:  # ConfigError is a ValueError; it names the setting and the rule
@@ -213,8 +325,7 @@ class ControllerNode(Node):
             result = self.controller.coast()
             if result is not None:
                 self.last_result = result
-                self.last_command = result.u
-                self.pub_command.publish(vector_to_array(result.u))
+                self.send_command(result.u)
                 self.publish_diagnostics(DiagnosticStatus.WARN, "no new state: next input of the last plan",
                                          result, 0.0)
                 return
@@ -231,8 +342,7 @@ class ControllerNode(Node):
         self.state_solved = True
         self.fresh_state = False
         self.last_result = result
-        self.last_command = result.u
-        self.pub_command.publish(vector_to_array(result.u))
+        self.send_command(result.u)
         latency = time.perf_counter() - started
         if result.is_fallback:
             self.counts["fallbacks"] += 1
@@ -242,19 +352,24 @@ class ControllerNode(Node):
         level = DiagnosticStatus.WARN if result.is_fallback else DiagnosticStatus.OK
         self.publish_diagnostics(level, result.status, result, latency)
 
+    def safe_command(self, behavior: str) -> np.ndarray:
+        """The command [m] of a stale-state or deactivate `behavior` (one of STALE_BEHAVIORS)."""
+        if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
+            return np.asarray(self.last_result.u_a, float)
+        if behavior == "last":
+            return np.asarray(self.last_command, float)
+        if behavior == "safe_input":
+            return np.asarray(self.safe_input, float)
+        return np.zeros(self.m)
+
+    def send_command(self, u: np.ndarray) -> None:
+        self.pub_command.publish(vector_to_array(u))
+        self.last_command = np.asarray(u, float)
+
     def publish_safe(self, why: str) -> None:
         """No solve: command the configured safe behaviour and report an ERROR (every sample)."""
         behavior = self.options.stale_behavior
-        if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
-            u = self.last_result.u_a
-        elif behavior == "last":
-            u = self.last_command
-        elif behavior == "safe_input":
-            u = self.safe_input
-        else:
-            u = np.zeros(self.m)
-        self.pub_command.publish(vector_to_array(u))
-        self.last_command = np.asarray(u, float)
+        self.send_command(self.safe_command(behavior))
         self.counts["stale"] += 1
         self.publish_diagnostics(DiagnosticStatus.ERROR, f"{why}: applying {behavior}", None, 0.0)
         self.get_logger().error(f"{why}: applying {behavior} {self.last_command.tolist()}",
