@@ -28,7 +28,9 @@ from .regions import Region
 from .settings import ControllerSettings
 
 #: points on the steady-state segment from y_a to the target where blocking is checked
-SEGMENT_POINTS = 48
+SEGMENT_POINTS = 96
+#: the segment searched runs from y_a this many times as far as the target
+SEGMENT_REACH = 2.0
 #: y_a has stalled when it moved less than this (output units, inf-norm) in the last sample
 STALL_TOLERANCE = 1e-3
 #: a detour passes this far outside a region's bounding circle, relative to its radius
@@ -88,9 +90,12 @@ class EscapeGuesses:
         return bool(self.beyond_blocks(y_a, y_t, par))
 
     def beyond_blocks(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> list[np.ndarray]:
-        """Outputs just beyond each stretch of the segment y_from -> y_to whose steady state is inside
-        a region, as long as they are admissible (steady state in lambda Z, outside every region)."""
-        t = np.linspace(0.0, 1.0, SEGMENT_POINTS)
+        """Outputs just beyond each stretch of the segment from y_from towards y_to (SEGMENT_REACH times
+        as far) whose steady state is inside a region, as long as they are admissible (steady state in
+        lambda Z, outside every region): at most one beyond y_to."""
+        # past y_to as well (up to twice as far from y_from): a region covering the target itself
+        # leaves its best admissible point on the far side (beyond lambda Z the search stops)
+        t = np.linspace(0.0, SEGMENT_REACH, SEGMENT_POINTS)
         Y = y_from[:, None] + (y_to - y_from)[:, None] * t[None, :]
         x_s, u_s, depth = self._segment(Y.T.ravel(), par)
         z = np.vstack([x_s.reshape(SEGMENT_POINTS, -1).T, u_s.reshape(SEGMENT_POINTS, -1).T])
@@ -108,8 +113,10 @@ class EscapeGuesses:
                 j = k + 1 if k + 1 < SEGMENT_POINTS and free[k + 1] else k
                 beyond.append(Y[:, j].copy())
                 inside_block = False
-            if not in_box[k] and not blocked[k]:
-                break  # beyond lambda Z: further outputs are not steady states the plan may use
+                if t[j] >= 1.0:
+                    break
+            if (not in_box[k] and not blocked[k]) or (t[k] > 1.0 and not inside_block):
+                break  # beyond lambda Z (outputs that are not steady states the plan may use), or past y_to
         return beyond
 
     def guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
