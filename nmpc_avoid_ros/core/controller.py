@@ -17,7 +17,7 @@ import numpy as np
 
 from .candidates import EscapeGuesses, Solution, lowest_cost, plan_cost
 from .errors import ConfigError, InputError
-from .fallback import FallbackSelector
+from .fallback import VIOLATION_TOLERANCE, FallbackSelector
 from .models import Model
 from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase, TrackingNlp
 from .regions import Region
@@ -59,6 +59,8 @@ class StepResult:
             ('shifted' or the guess's label) and one entry per guess tried.
         fallback_reason: for a fallback, which candidate was applied and every candidate's
             predicted violation; predicted_violation: the applied one's (region g / state units).
+        region_unavoidable: the solved plan predicts a violation beyond VIOLATION_TOLERANCE (a
+            region cannot be avoided from this state): the least-violating input was applied.
     """
 
     u: np.ndarray
@@ -78,6 +80,7 @@ class StepResult:
     escape: str = ""
     fallback_reason: str = ""
     predicted_violation: float = math.nan
+    region_unavoidable: bool = False
 
     @property
     def is_fallback(self) -> bool:
@@ -271,7 +274,24 @@ class NmpcController:
         result = self._result(plan, x, 0, status, attempt.solver_status, attempt.iterations, solve_time,
                               attempt.budget_cut)
         result.escape = escape
+        # a region the plan cannot avoid (e.g. one placed over the current state): the input that
+        # predicts the least violation, and say so; the cheap depth check first (mu = 0: no avoidance)
+        if s.mu > 0 and best.nlp.max_depth(best.w, par) > VIOLATION_TOLERANCE:
+            self._bound_violation(x, par, result)
         return result
+
+    def _bound_violation(self, x: np.ndarray, par: np.ndarray, result: StepResult) -> None:
+        """Mark (and where another candidate predicts less violation, replace) a plan that predicts penetration."""
+        choice = self.fallback.unavoidable(x, par, result.inputs)
+        if choice is None:
+            return
+        result.region_unavoidable = True
+        result.predicted_violation = choice.violation
+        result.fallback_reason = f"region unavoidable from the current state; {choice.reason}"
+        result.solve_time += choice.solve_time
+        if choice.kind != "plan":
+            result.status = StepStatus(f"fallback_{choice.kind}")
+            result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
 
     def _solve(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray) -> _Attempt:
         """The sample's regular solve: the fast path from the shifted plan (cold: the cold-start solvers)."""
@@ -396,10 +416,14 @@ class NmpcController:
     def set_safe_input(self, u: Sequence[float]) -> None:
         """The model's safe input [m], one of the fallback's candidates (InputError if malformed or
         outside the input box)."""
+        self.fallback.safe_input = self.check_safe_input(u)
+
+    def check_safe_input(self, u: Sequence[float]) -> np.ndarray:
+        """u as a safe input [m], or InputError if malformed or outside the input box."""
         u = validate_vector("safe_input", u, self.model.m)
         if np.any(u < self._input_lo) or np.any(u > self._input_hi):
             raise InputError(f"safe_input {u.tolist()} is outside the input box")
-        self.fallback.safe_input = u
+        return u
 
     def _fallback(self, x: np.ndarray, par: np.ndarray, solver_status: str, iterations: int, solve_time: float,
                   budget_cut: bool) -> StepResult:

@@ -147,3 +147,15 @@ class FallbackSelector:
         states, violation = predicted[kind]
         return FallbackChoice(kind, sequences[kind], states, violation, reason, seconds)
 
+    def unavoidable(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray) -> FallbackChoice | None:
+        """None if the accepted plan's inputs [H, m] predict no violation beyond VIOLATION_TOLERANCE;
+        else (a region the plan cannot avoid from x) the least-violating of the plan (kind 'plan'),
+        the safe input and the recovery solve."""
+        if self.predict(x, plan_inputs, par)[1] <= VIOLATION_TOLERANCE:
+            return None
+        choice = self.choose(x, par, plan_inputs, None, True)
+        if choice.kind == "shift":
+            choice.kind = "plan"
+            choice.reason = "plan" + choice.reason[len("shift"):].replace("(shift ", "(plan ")
+        return choice
+

@@ -175,8 +175,9 @@ class NodeSettings:
                                         "behaviour", runtime=True, low=0.0, high=3600.0)
     stale_behavior: str = setting("hold_steady", "command while the state is stale or missing", runtime=True,
                                   choices=STALE_BEHAVIORS)
-    safe_input: tuple[float, ...] | None = setting(None, "command of stale_behavior safe_input (m values; "
-                                                         "default zeros)", runtime=True)
+    safe_input: tuple[float, ...] | None = setting(None, "the model's safe command (m values within the input "
+                                                         "box; default zeros): stale_behavior safe_input, and a "
+                                                         "fallback candidate", runtime=True)
     lockstep: bool = setting(False, "solve once per arriving state instead of on the timer (with a lockstep "
                                     "plant)")
     log_throttle: float = setting(2.0, "minimum seconds between repeated warnings of one kind", runtime=True,

@@ -131,6 +131,7 @@ class ControllerNode(LifecycleNode):
         if self.options.target is not None:
             self.target = np.asarray(finite_vector(self.options.target, self.p, "target"))
         self.safe_input = self._safe_input(self.options)
+        self.controller.set_safe_input(self.safe_input)  # also a fallback candidate
         self.lockstep = self.options.lockstep  # read-only: fixed for the node's life
         self.controller = controller
         self.reset_loop()
@@ -284,15 +285,18 @@ class ControllerNode(LifecycleNode):
         except ValueError as exc:  # ConfigError is a ValueError; it names the setting and the rule
             return SetParametersResult(successful=False, reason=str(exc))
         self.controller.settings, self.options, self.safe_input = settings, options, safe_input
+        self.controller.set_safe_input(safe_input)
         if "target" in values and target is not None:
             self.target = target
         return SetParametersResult(successful=True)
 
     def _safe_input(self, options: NodeSettings) -> np.ndarray:
-        """The command of stale_behavior safe_input [m] (zeros when unset); ValueError for a wrong size."""
+        """The model's safe input [m] (zeros when unset); ValueError for a wrong size or outside the input box."""
         if options.safe_input is None:
             return np.zeros(self.m)
-        return np.asarray(finite_vector(options.safe_input, self.m, "safe_input"))
+        safe = np.asarray(finite_vector(options.safe_input, self.m, "safe_input"))
+        self.controller.check_safe_input(safe)
+        return safe
 
     # -- the sample ----------------------------------------------------------------------------
     def on_sample(self) -> None:
@@ -350,7 +354,12 @@ class ControllerNode(LifecycleNode):
             self.counts["deadline_overruns"] += 1
         self.publish_prediction(result)
         level = DiagnosticStatus.WARN if result.is_fallback else DiagnosticStatus.OK
-        self.publish_diagnostics(level, result.status, result, latency)
+        message = str(result.status)
+        if result.region_unavoidable:  # bad input: a region the plan cannot avoid from this state
+            level = DiagnosticStatus.ERROR
+            message = f"{result.status}: {result.fallback_reason}"
+            self.get_logger().error(message, throttle_duration_sec=self.options.log_throttle)
+        self.publish_diagnostics(level, message, result, latency)
 
     def safe_command(self, behavior: str) -> np.ndarray:
         """The command [m] of a stale-state or deactivate `behavior` (one of STALE_BEHAVIORS)."""
@@ -404,6 +413,8 @@ class ControllerNode(LifecycleNode):
                 "offset_cost": f"{result.offset_cost:.6g}", "avoidance_cost": f"{result.avoidance_cost:.6g}",
                 "tracking_cost": f"{result.tracking_cost:.6g}", "y_a": str(result.y_a.tolist()),
                 "state": str(result.states[0].tolist()),
+                "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
+                "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
             })
         status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: nmpc",
                                   message=message, hardware_id=self.get_fully_qualified_name())
