@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import socket
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from nmpc_avoid_ros.core.regions import Ellipse
 from nmpc_avoid_ros.core.settings import default_config_path
 from nmpc_avoid_ros.evaluation.campaign.cli import main
 from nmpc_avoid_ros.evaluation.campaign.reachability import ReachableSet, planar_passage, vdp_passage
-from nmpc_avoid_ros.evaluation.campaign.running import JSON_NAME, JSONL_NAME
+from nmpc_avoid_ros.evaluation.campaign.running import JSON_NAME, JSONL_NAME, read_jsonl
 from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings, make_specs
 
 # seed 2: vdp-0004 (unreachable target -6.4) and vdp-0005 (target 0.8) have no ellipse
@@ -146,3 +147,52 @@ def test_reachable_set_and_passages():
     # van der Pol: moving right needs x2 > 0; an ellipse over 0 < x2 <= 2/x1 at x1 = 3 closes the way
     assert not vdp_passage(np.array([1.0, 0.0]), np.array([5.0]), [Ellipse((3.0, 0.5), (0.3, 1.0))])
     assert vdp_passage(np.array([1.0, 0.0]), np.array([5.0]), [Ellipse((3.0, -0.5), (0.3, 0.45))])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_bad_input_is_refused_with_one_line_and_nothing_lost(campaign, tmp_path, capsys):
+    out = tmp_path / "kept"
+    shutil.copytree(campaign, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    # nothing listens on the port: the scheduler cannot be reached (one scenario would still be to run)
+    args = _args(out, "--vdp", "7", "--no-plots")
+    assert main([*args, "--scheduler", f"tcp://127.0.0.1:{_free_port()}", "--connect-timeout", "1"]) == 2
+    assert main([*_args(out), "--sweep", "horizon=5,10"]) == 2  # structural: it would rebuild the NLP
+    assert main([*_args(out), "--sweep", "mu=-1,1"]) == 2  # out of range
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 3 and all(e.startswith("campaign: error: ") for e in errors), errors
+    assert "cannot reach the Dask scheduler" in errors[0] and "not a run-time setting" in errors[1]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # a broken line that is not the torn last one: refused, the file left as it is
+    lines = _lines(out / JSONL_NAME)
+    broken = "\n".join([lines[0], lines[1][:30], *lines[2:]]) + "\n"
+    (out / JSONL_NAME).write_text(broken)
+    assert main(_args(out, "--no-plots")) == 2
+    assert f"{JSONL_NAME}:2 is not a JSON record" in capsys.readouterr().err
+    assert (out / JSONL_NAME).read_text() == broken
+
+
+def test_sweep_runs_the_same_scenarios_per_value(tmp_path):
+    args = ["--out", str(tmp_path), "--vdp", "3", "--robot", "0", "--seed", SEED, "--vdp-steps", "30",
+            "--max-solve-time", "30", "--no-progress", "--jobs", "1", "--sweep", "mu=0,1e8"]
+    assert main(args) == 0
+    runs = {v: read_jsonl(tmp_path / f"mu={v}" / JSONL_NAME) for v in ("0", "100000000.0")}
+    assert [sorted(r) for r in runs.values()] == [["vdp-0000", "vdp-0001", "vdp-0002"]] * 2
+    free, avoiding = runs["0"], runs["100000000.0"]
+    assert all(free[k]["spec"] == avoiding[k]["spec"] for k in free)
+    assert all(r["final_avoidance_cost"] == 0.0 for r in free.values())  # V_a = mu F: nothing with mu = 0
+    assert any(free[k]["trace"]["x"] != avoiding[k]["trace"]["x"] for k in free)  # the value took effect
+    sweep = json.loads((tmp_path / "sweep.json").read_text())
+    assert sweep["name"] == "mu" and sweep["values"] == [0, 1e8]
+    rows = sweep["summary"]["vdp"]
+    assert rows["max_penetration"][0] >= rows["max_penetration"][1]
+    assert "| share_converged |" in (tmp_path / "sweep.md").read_text()
+    assert (tmp_path / "sweep.png").stat().st_size > 5000
+    assert main(args) == 0  # resumes: nothing to run again
+    assert {v: read_jsonl(tmp_path / f"mu={v}" / JSONL_NAME) for v in runs} == runs

@@ -1,4 +1,5 @@
-"""Child node processes for the demo and the tests: own process group, stopped by PID."""
+"""Child processes (nodes, tools, a Dask scheduler and workers) for the demo and the tests: own
+process group, stopped by PID."""
 
 from __future__ import annotations
 
@@ -20,15 +21,17 @@ def isolated_env(domain_id: int, log_dir: Path) -> dict[str, str]:
 
 
 class NodeProcess:
-    """`python -m nmpc_avoid_ros <command> ...` in its own process group, output to a log file."""
+    """`<program> <command> ...` in its own process group, output to a log file; the program is
+    `python -m nmpc_avoid_ros` unless given (e.g. the `dask` command line)."""
 
     def __init__(self, command: str, args: list[str], env: dict[str, str], log_dir: Path,
-                 preexec_fn: Callable[[], None] | None = None) -> None:
+                 preexec_fn: Callable[[], None] | None = None, program: list[str] | None = None) -> None:
         log_dir.mkdir(parents=True, exist_ok=True)
         self.command = command
         self.log_path = log_dir / f"{command}-{time.monotonic_ns()}.log"
         self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen([sys.executable, "-m", "nmpc_avoid_ros", command, *args], env=env,
+        program = program or [sys.executable, "-m", "nmpc_avoid_ros"]
+        self.proc = subprocess.Popen([*program, command, *args], env=env,
                                      stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True,
                                      preexec_fn=preexec_fn)
 

@@ -65,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                     help="local worker processes (default: all cores; 1: in this process)")
     ap.add_argument("--scheduler", help="address of an existing Dask scheduler, e.g. tcp://10.0.0.5:8786")
+    ap.add_argument("--connect-timeout", type=float, default=10.0,
+                    help="seconds to wait for the scheduler to answer (default 10)")
     ap.add_argument("--sweep", help="NAME=V1,V2,...: the same scenarios once per value of a run-time setting")
     ap.add_argument("--plant", choices=PLANTS, default="euler",
                     help="euler: the prediction model (the paper's nominal setting, default); continuous: ZOH+DOP853")
@@ -156,14 +158,20 @@ def _run(args: argparse.Namespace, runs: Sequence[tuple[Path, dict, dict]], task
         f.flush()
 
     bar = tqdm(total=len(tasks), desc="campaign", unit="scenario", disable=args.no_progress, dynamic_ncols=True)
+    started = time.perf_counter()
+    lost: list[str] = []
     try:
         if args.scheduler or args.jobs > 1:
-            lost = run_dask(tasks, sink, bar, args.scheduler, min(args.jobs, len(tasks)))
+            lost = run_dask(tasks, sink, bar, args.scheduler, min(args.jobs, len(tasks)), args.connect_timeout)
             if lost:
                 print(f"campaign: the cluster gave up on {len(lost)} scenario(s) (rerun to resume): {lost[0]}",
                       file=sys.stderr)
         else:
             run_local(tasks, sink, bar)
+        seconds = time.perf_counter() - started
+        ran = len(tasks) - len(lost)
+        print(f"campaign: ran {ran} scenarios in {seconds:.1f} s ({ran / seconds:.2f} scenarios/s, "
+              f"start-up included)", flush=True)
     except KeyboardInterrupt:
         print("campaign: interrupted; rerun with the same --out to resume", file=sys.stderr)
         return 130

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -155,6 +156,9 @@ def run_dask(tasks: Sequence[tuple[dict[str, Any], RunSetup]], sink: Sink, bar: 
     cluster = None
     if scheduler:
         client = Client(scheduler, timeout=connect_timeout)
+        if not client.scheduler_info().get("workers"):
+            print(f"campaign: no worker at {scheduler} yet; waiting for one (`dask worker {scheduler}`)",
+                  file=sys.stderr, flush=True)
     else:
         cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None)
         client = Client(cluster)
