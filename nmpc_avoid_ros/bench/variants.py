@@ -18,6 +18,7 @@ from ..core.controller import NmpcController
 from ..core.models import Model
 from ..core.regions import Region
 from ..core.settings import ControllerSettings
+from ..core.status import StepStatus
 
 
 @dataclass
@@ -53,5 +54,5 @@ class OursStepper:
 
     def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None) -> Sample:
         res = self.controller.step(x, y_t, regions)
-        return Sample(res.u, res.solve_time, res.iterations, failed=res.status not in ("ok", "truncated"),
+        return Sample(res.u, res.solve_time, res.iterations, failed=not StepStatus(res.status).is_usable,
                       fallback=res.is_fallback, budget_exhausted=res.budget_exhausted)

@@ -7,8 +7,10 @@ Everything here drives closed loops through the one driver, `core.closed_loop.Cl
 
     evaluation/campaign/scenarios.py     families and their scenario generators
     evaluation/campaign/reachability.py  Y_r, best reachable/admissible points, passages
-    evaluation/campaign/scoring.py       one run -> its record; records -> the family summary
+    evaluation/campaign/scoring.py       one run -> its record
+    evaluation/campaign/summary.py       a family's records -> its summary, definitions
     evaluation/campaign/running.py       where scenarios run (serial, process pool, Dask), resume
-    evaluation/campaign/cli.py           `python -m nmpc_avoid_ros campaign` (and --sweep)
+    evaluation/campaign/cli.py           `python -m nmpc_avoid_ros campaign`
+    evaluation/campaign/sweep.py         --sweep: one run-time setting over several values
     evaluation/campaign/plots.py         the summary figures
 """

@@ -47,7 +47,7 @@ from .running import (
     run_local,
 )
 from .scenarios import FAMILIES, families, interleave, make_specs, settings_from_params
-from .scoring import format_summary
+from .summary import format_summary
 from .sweep import parse_sweep, sweep_dir, write_sweep
 
 

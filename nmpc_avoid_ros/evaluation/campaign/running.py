@@ -24,7 +24,8 @@ from typing import Any
 
 from ...core.errors import ConfigError
 from .scenarios import families, settings_from_params
-from .scoring import DEFINITIONS, TIMED_FIELDS, Tools, classify, score_scenario, summarize
+from .scoring import TIMED_FIELDS, Tools, classify, score_scenario
+from .summary import DEFINITIONS, summarize
 
 JSONL_NAME = "campaign.jsonl"
 JSON_NAME = "campaign.json"

@@ -4,7 +4,7 @@ Only run-time settings (core.settings.RUNTIME_FIELDS: NLP parameters, changeable
 rebuild) may be swept: a sweep compares the controller as it would be retuned in operation.
 Each value runs as its own campaign in <out>/<NAME>=<V>/ (resumable like any other); the
 comparison goes to sweep.json, sweep.md (one table per family) and sweep.png. A comparison
-row is one summary key (scoring.summarize); SWEEP_KEYS picks which.
+row is one summary key (summary.summarize); SWEEP_KEYS picks which.
 """
 
 from __future__ import annotations

@@ -1,0 +1,183 @@
+"""A campaign family's summary (scoring.py gives the records), its definitions, and its text form.
+
+A new summary key is one more entry in `summarize` (plus a line in `format_summary` to print
+it and, to compare it across values, an entry in sweep.SWEEP_KEYS); a definition a reader of
+campaign.json needs is one more entry in DEFINITIONS.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ...core.metrics import SETTLING_TOLERANCE, time_stats
+from .scoring import FALLBACK_KINDS, NEAR_TOLERANCE, REACHABLE_TOLERANCE, REST_TOLERANCE, REST_WINDOW
+
+
+def _share(flags: Sequence[bool]) -> float | None:
+    return float(np.mean(flags)) if len(flags) else None
+
+
+def _max(values: Sequence[float]) -> float | None:
+    return float(max(values)) if values else None
+
+
+def _stats(values: Sequence[float]) -> dict[str, float | None]:
+    if not values:
+        return {"median": None, "max": None}
+    return {"median": float(np.median(values)), "max": float(np.max(values))}
+
+
+def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Summary of one family's records (shares are fractions in [0, 1]; distances in output units)."""
+    crashed = [r for r in records if r.get("crashed")]
+    records = [r for r in records if not r.get("crashed")]
+    n = len(records)
+    if not n:
+        return {"scenarios": 0, "crashed": len(crashed)}
+    diverged = [r for r in records if r.get("stopped_early")]
+    finished = [r for r in records if not r.get("stopped_early")] or records
+    reach = [r for r in records if r["reachable"]]
+    unreach = [r for r in records if not r["reachable"]]
+    short = [r for r in records if r["stop_short"]]
+    pairs = sum(r["rf_pairs"] for r in records)
+    worst = max(finished, key=lambda r: r["max_penetration"])
+    feasible_start = [r for r in finished if r["x0_in_feasible_set"] == "feasible"]
+    causes: dict[str, int] = {}
+    for r in short:
+        causes[r["stop_short_cause"]] = causes.get(r["stop_short_cause"], 0) + 1
+    return {
+        "scenarios": n,
+        "crashed": len(crashed),
+        "stopped_early": len(diverged),
+        "reachable_targets": len(reach),
+        "with_ellipses": sum(r["n_ellipses"] > 0 for r in records),
+        "target_covered_by_region": sum(r["target_covered"] for r in records),
+        "share_converged": _share([r["converged"] for r in records]),
+        "share_near": _share([r["near"] for r in records]),
+        "share_near_target_reachable": _share([r["near"] for r in reach]),
+        "share_near_best_unreachable": _share([r["near"] for r in unreach]),
+        "share_near_admissible": _share([r["near_admissible"] for r in records]),
+        "share_converged_no_ellipse": _share([r["converged"] for r in records if r["n_ellipses"] == 0]),
+        "share_at_rest": _share([r["at_rest"] for r in records]),
+        "not_at_rest": sum(not r["at_rest"] for r in records),
+        "max_penetration": float(worst["max_penetration"]),
+        "max_penetration_scenario": worst["id"] if worst["max_penetration"] > 0 else None,
+        "max_penetration_keep_in": float(max(r["max_penetration_keep_in"] for r in finished)),
+        "max_penetration_obstacles": float(max(r["max_penetration_obstacles"] for r in finished)),
+        "max_penetration_scope": "runs that did not stop early",
+        "runs_with_penetration_over_1e-3": sum(r["max_penetration"] > 1e-3 for r in records),
+        "samples": sum(r["samples"] for r in records),
+        "solver_failures": sum(r["solver_failures"] for r in records),
+        "truncated": sum(r["truncated"] for r in records),
+        "fallbacks": sum(r["fallbacks"] for r in records),
+        "fallback_kinds": {k: sum(r["fallback_kinds"].get(k, 0) for r in records) for k in FALLBACK_KINDS},
+        "penetration_after_first_step": _max([r["penetration_after_first_step"] for r in feasible_start]),
+        "penetration_after_first_step_all_runs": _max([r["penetration_after_first_step"] for r in finished]),
+        "runs_penetrating_after_first_step_over_1e-3": sum(r["penetration_after_first_step"] > 1e-3
+                                                          for r in feasible_start),
+        "fallback_penetration": _max([r["fallback_penetration"] for r in finished]),
+        "escapes_tried": sum(r["escapes_tried"] for r in records),
+        "escapes_taken": sum(r["escapes_taken"] for r in records),
+        "runs_with_escape_taken": sum(r["escapes_taken"] > 0 for r in records),
+        "solve_ms": time_stats(np.concatenate([r["trace"]["solve_ms"] for r in records]))
+        if all("trace" in r for r in records) else None,
+        "runs_with_fallback": sum(r["fallbacks"] > 0 for r in records),
+        "runs_with_solver_failure": sum(r["solver_failures"] > 0 for r in records),
+        "first_solve_failed": sum(not r["initial_feasible"] for r in records),
+        "first_solve_failed_x0_feasible": sum(not r["initial_feasible"] and r["x0_in_feasible_set"] == "feasible"
+                                              for r in records),
+        "x0_infeasible": sum(r["x0_in_feasible_set"] == "infeasible" for r in records),
+        "x0_feasibility_unknown": sum(r["x0_in_feasible_set"] == "unknown" for r in records),
+        "recursive_feasibility_rate": float(sum(r["rf_kept"] for r in records) / pairs) if pairs else None,
+        "recursive_feasibility_pairs": int(pairs),
+        "stop_short": len(short),
+        "stop_short_causes": causes,
+        "stop_short_distance": _stats([r["stop_short_distance"] for r in short]),
+        "stop_short_beyond_admissible": _stats([r["stop_short_beyond_admissible"] for r in short
+                                                if r["stop_short_beyond_admissible"] is not None
+                                                and math.isfinite(r["stop_short_beyond_admissible"])]),
+        "solve_ms_max": float(max(r["solve_ms"]["max"] for r in records)),
+        "solve_ms_median_of_medians": float(np.median([r["solve_ms"]["median"] for r in records])),
+        "budget_exhausted": sum(r["budget_exhausted"] for r in records),
+        "examples": {
+            "stop_short": [r["id"] for r in short][:5],
+            "stopped_early": [f"{r['id']}: {r['stopped_early']}" for r in diverged][:5],
+            "crashed": [f"{r['id']}: {r['crashed']}" for r in crashed][:5],
+            "not_at_rest": [r["id"] for r in records if not r["at_rest"]][:5],
+            "fallback": [r["id"] for r in records if r["fallbacks"]][:5],
+            "first_solve_failed": [r["id"] for r in records if not r["initial_feasible"]][:5],
+            "x0_infeasible": [r["id"] for r in records if r["x0_in_feasible_set"] == "infeasible"][:5],
+        },
+    }
+
+
+DEFINITIONS = {
+    "best_reachable": "y*: projection of y_t onto Y_r = outputs of steady states in lambda*Z (IPOPT, tol 1e-12)",
+    "reachable": f"|y* - y_t| < {REACHABLE_TOLERANCE:g}",
+    "best_admissible": "y~: nearest point to y_t of Y_r whose steady state lies outside all regions (grid search)",
+    "at_rest": f"state moved < {REST_TOLERANCE:g} (inf-norm) over the last {REST_WINDOW} samples",
+    "converged": f"|y - y*| < {SETTLING_TOLERANCE:g} from some sample on, to the end",
+    "near": f"|y_K - y*| < {NEAR_TOLERANCE:g} (y* = y_t for a reachable target)",
+    "stop_short": "at rest but not converged; distance |y_K - y*|; cause obstacle_covers_target (stopped at y~ != y*), "
+                  "no_passage (no admissible way to y~ exists) or local_minimum (one exists)",
+    "penetration": "max over sampled states of g (keep-in: expression value, e.g. |x1 x2|-2; ellipse: 1 - r^2), 0 "
+                   "if never inside",
+    "solver_failure": "sample whose IPOPT status is not Solve_Succeeded / Solved_To_Acceptable_Level",
+    "stopped_early": "the closed loop ended before its last sample (e.g. the plant state became non-finite); such "
+                     "runs count as not converged and are left out of max_penetration",
+    "fallback": "sample that applied the controller's fallback (shift, steady, safe input or recovery solve: the "
+                "candidate predicting the least violation, core/fallback.py)",
+    "penetration_after_first_step": "max over runs (x0 in X_N, not stopped early) of the largest g over x(2..K), "
+                                    "where the input can act; 0 if never inside",
+    "fallback_penetration": "max over runs and fallback samples k of the largest g over x(k+1..k+N)",
+    "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/candidates.py); "
+               "escapes_taken: samples whose plan came from one",
+    "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
+    "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
+                          "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",
+    "recursive_feasibility_rate": "P(solve k usable | solve k-1 usable), usable = status ok or truncated",
+}
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """Human-readable lines of the per-family summaries."""
+    lines = []
+    pct = lambda v: "n/a" if v is None else f"{100 * v:.1f}%"  # noqa: E731
+    for fam, s in summary.items():
+        if not s.get("scenarios"):
+            lines.append(f"{fam}: no scenarios")
+            continue
+        ss = s["stop_short_distance"]
+        lines += [
+            f"{fam}: {s['scenarios']} scenarios ({s['reachable_targets']} reachable targets, "
+            f"{s['with_ellipses']} with ellipses, {s['target_covered_by_region']} with y* covered by a region; "
+            f"stopped early {s['stopped_early']}, crashed {s['crashed']})",
+            f"  converged {pct(s['share_converged'])}  near y_t/y* {pct(s['share_near'])} "
+            f"(reachable {pct(s['share_near_target_reachable'])}, unreachable {pct(s['share_near_best_unreachable'])})"
+            f"  near y~ {pct(s['share_near_admissible'])}  not at rest {s['not_at_rest']}",
+            f"  max penetration {s['max_penetration']:.3g} (keep-in {s['max_penetration_keep_in']:.3g}, "
+            f"ellipses {s['max_penetration_obstacles']:.3g}; runs > 1e-3: {s['runs_with_penetration_over_1e-3']})",
+            f"  samples {s['samples']}: solver failures {s['solver_failures']} (truncated {s['truncated']}), "
+            f"fallbacks {s['fallbacks']} in {s['runs_with_fallback']} runs, recursive feasibility "
+            f"{pct(s['recursive_feasibility_rate'])}",
+            f"  first solve failed {s['first_solve_failed']} (x0 in X_N: {s['first_solve_failed_x0_feasible']}; "
+            f"x0 outside X_N {s['x0_infeasible']}, unknown {s['x0_feasibility_unknown']})",
+            f"  stop short {s['stop_short']} {s['stop_short_causes']} distance median "
+            f"{_fmt(ss['median'])} max {_fmt(ss['max'])}; solve max {s['solve_ms_max']:.0f} ms",
+            f"  penetration after the first step {_fmt(s['penetration_after_first_step'])} (x0 in X_N; all runs "
+            f"{_fmt(s['penetration_after_first_step_all_runs'])}), after fallbacks {_fmt(s['fallback_penetration'])}; "
+            f"fallbacks by candidate {s['fallback_kinds']}; escapes tried {s['escapes_tried']}, taken "
+            f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs",
+        ]
+        if s.get("solve_ms"):
+            t = s["solve_ms"]
+            lines.append(f"  solve ms median {t['median']:.3g}, p99 {t['p99']:.3g}, max {t['max']:.3g}")
+    return "\n".join(lines)
+
+
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.3g}"
