@@ -228,6 +228,8 @@ class ClosedLoopRun:
     regions: list[tuple[Region, ...]] = field(default_factory=list)  # [K] the set in force at each sample
     stopped: str | None = None  # why the loop ended early (see Trajectory), None if it ran every sample
     escapes: list[str] = field(default_factory=list)  # [K] StepResult.escape ('' where none was tried)
+    # [K] StepResult.predicted_violation: of the applied fallback or bounded-violation input, else NaN
+    predicted_violations: list[float] = field(default_factory=list)
 
     @classmethod
     def from_trajectory(cls, run: Trajectory, info: dict | None = None) -> ClosedLoopRun:
@@ -237,7 +239,8 @@ class ClosedLoopRun:
         return cls(run.x, run.u, np.array([r.y_a for r in res]).reshape(K, -1), run.targets, run.solve_time,
                    run.iterations, [r.status for r in res], [r.solver_status for r in res],
                    np.array([(r.offset_cost, r.avoidance_cost, r.tracking_cost) for r in res]).reshape(K, 3),
-                   run.sample_time, dict(info or {}), run.regions, run.stopped, [r.escape for r in res])
+                   run.sample_time, dict(info or {}), run.regions, run.stopped, [r.escape for r in res],
+                   [r.predicted_violation for r in res])
 
     def to_json(self) -> dict:
         """The JSON layout of `simulate --json` (lists of rows, solve time in ms)."""

@@ -228,6 +228,9 @@ def robustness_section(s: Scored) -> dict[str, Any]:
     return {
         "penetration_after_first_step": max(0.0, float(np.max(g[FIRST_ACTED_SAMPLE:], initial=-math.inf))),
         "fallback_penetration": max([0.0, *after_fallback]),
+        # the first sample's least-violating input still predicts a violation: a region cannot be
+        # avoided from x0 although x0 is in X_N (whose constraints are the hard ones alone)
+        "unavoidable_at_start": bool(run.predicted_violations and run.predicted_violations[0] > 1e-3),
         "escapes_tried": sum(bool(e) for e in run.escapes),
         "escapes_taken": sum(bool(e) and not e.startswith("shifted") for e in run.escapes),
     }

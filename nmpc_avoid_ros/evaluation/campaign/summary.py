@@ -79,6 +79,9 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "penetration_after_first_step_all_runs": _max([r["penetration_after_first_step"] for r in finished]),
         "runs_penetrating_after_first_step_over_1e-3": sum(r["penetration_after_first_step"] > 1e-3
                                                           for r in feasible_start),
+        "runs_unavoidable_at_start": sum(r.get("unavoidable_at_start", False) for r in feasible_start),
+        "penetration_after_first_step_avoidable_start": _max([r["penetration_after_first_step"] for r in feasible_start
+                                                             if not r.get("unavoidable_at_start", False)]),
         "fallback_penetration": _max([r["fallback_penetration"] for r in finished]),
         "escapes_tried": sum(r["escapes_tried"] for r in records),
         "escapes_taken": sum(r["escapes_taken"] for r in records),
@@ -134,6 +137,10 @@ DEFINITIONS = {
     "penetration_after_first_step": "max over runs (x0 in X_N, not stopped early) of the largest g over x(2..K), "
                                     "where the input can act; 0 if never inside",
     "fallback_penetration": "max over runs and fallback samples k of the largest g over x(k+1..k+N)",
+    "unavoidable_at_start": "x0 in X_N, but the least-violating input of sample 0 (plan, safe input or recovery "
+                            "solve) still predicts a violation over 1e-3: a region cannot be avoided from x0 "
+                            "(X_N has the hard constraints only); penetration_after_first_step_avoidable_start "
+                            "leaves these runs out",
     "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/candidates.py); "
                "escapes_taken: samples whose plan came from one",
     "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
