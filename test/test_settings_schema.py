@@ -121,3 +121,13 @@ def test_a_new_setting_is_one_declaration():
     assert not spec.read_only and spec.float_range == (0.0, 10.0)
     row = markdown_table([spec]).splitlines()[-1]
     assert row == "| `gain` | `2.0` | run time | a new gain, 1/s. Allowed: a finite number in [0, 10]. |"
+
+
+def test_make_readme_rewrites_a_stale_table_and_check_reports_it(tmp_path, capsys):
+    from nmpc_avoid_ros.tools.readme_tables import main
+
+    stale = tmp_path / "README.md"
+    stale.write_text(README.read_text().replace("| `mu` | `100000000.0` | run time |", "| `mu` | `1.0` | run time |"))
+    assert main([str(stale), "--check"]) == 1 and "`mu`" in capsys.readouterr().out
+    assert main([str(stale)]) == 0 and stale.read_text() == README.read_text()
+    assert main([str(tmp_path / "missing.md")]) == 2

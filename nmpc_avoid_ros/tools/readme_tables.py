@@ -60,8 +60,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("readme", nargs="?", type=Path, default=README)
     parser.add_argument("--check", action="store_true", help="only compare; exit 1 if the README is stale")
     args = parser.parse_args(argv)
-    text = args.readme.read_text()
-    new = rewrite(text)
+    try:
+        text = args.readme.read_text()
+        new = rewrite(text)
+    except (OSError, ValueError) as exc:  # no README here (an installed package), or no table in it
+        print(f"readme_tables: {exc}", file=sys.stderr)
+        return 2
     if args.check:
         sys.stdout.writelines(difflib.unified_diff(text.splitlines(True), new.splitlines(True), "README", "declared"))
         return int(new != text)
