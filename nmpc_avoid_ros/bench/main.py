@@ -6,6 +6,7 @@ burst of load on the shared machine hits every variant alike. Building a variant
 
 - `paper/<mu>/<plant>`: the paper's example, x0 = [-5, 0], y_t = 5, 50 samples, the shipped
   config with no obstacle slots (the paper's problem exactly: the two keep-in regions).
+- `vdp_4_ellipses`: the paper's run (N = 5) among 4 ellipses, one across the steady states on the way.
 - `scaling/N=<N>`: the mobile robot (config/mobile_robot.yaml) among 4 ellipses, N = 5..100.
 - `moving_obstacle`: the mobile robot at N = 20 while an ellipse moves every sample (the
   obstacle set changes every sample; no variant may rebuild).
@@ -102,6 +103,19 @@ ROBOT_ELLIPSES = (Ellipse((-4.0, -3.5), (1.2, 0.8), 0.3, "output"), Ellipse((0.0
                   Ellipse((3.5, 2.0), (0.9, 0.9), 0.0, "output"), Ellipse((5.5, 5.0), (0.8, 1.2), -0.4, "output"))
 
 
+#: four ellipses on the paper's way from x1 = -5 to 5 (one across x2 = 0 at x1 = 2.6-3.8, so the
+#: steady states there are inside it and the loop needs the local-minimum escape to pass)
+VDP_ELLIPSES = (Ellipse((-3.0, 0.75), (0.6, 0.25), 0.2), Ellipse((-0.5, 1.5), (0.8, 0.35), 0.0),
+                Ellipse((1.5, -0.9), (0.7, 0.5), 0.4), Ellipse((3.2, -0.5), (0.6, 0.55), 0.0))
+
+
+def vdp_ellipse_scenario(steps: int) -> Scenario:
+    """The paper's van der Pol run (N = 5, mu = 1e8, Euler plant) among the 4 VDP_ELLIPSES."""
+    s = ControllerSettings.from_params(_config("van_der_pol.yaml")).replace(max_ellipses=4, max_polygons=0)
+    return Scenario("vdp_4_ellipses", s, make_model(s.model), np.array([-5.0, 0.0]), np.array([5.0]), steps,
+                    "euler", lambda k: VDP_ELLIPSES if k == 0 else None)
+
+
 def robot_settings(horizon: int) -> ControllerSettings:
     """The mobile robot's config with room for exactly 4 ellipses and no polygons."""
     return ControllerSettings.from_params(_config("mobile_robot.yaml")).replace(
@@ -146,7 +160,7 @@ def quality(scenario: Scenario, run: Trajectory) -> dict[str, Any]:
     out: dict[str, Any] = {"settling_step": track["settling_step"], "final_error": track["final_error"]}
     if scenario.model.name == "van_der_pol":
         out["max_abs_x1x2"] = max_abs_product(run.x)
-    else:
+    if scenario.model.name != "van_der_pol" or any(run.regions):
         out["max_penetration"] = penetration(scenario.settings, scenario.model, run.x, run.u, run.regions,
                                              y)["max_penetration"]
     return out
@@ -246,9 +260,11 @@ def main(argv: list[str] | None = None) -> int:
         print(line, file=sys.stderr, flush=True)
 
     if args.quick:
-        scenarios = [*paper_scenarios(50), *scaling_scenarios((5, 20, 50), 6), moving_obstacle_scenario(10)]
+        scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *scaling_scenarios((5, 20, 50), 6),
+                     moving_obstacle_scenario(10)]
     else:
-        scenarios = [*paper_scenarios(50), *scaling_scenarios((5, 10, 20, 50, 100), 40), moving_obstacle_scenario(60)]
+        scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *scaling_scenarios((5, 10, 20, 50, 100), 40),
+                     moving_obstacle_scenario(60)]
     if args.scenarios:
         prefixes = tuple(args.scenarios.split(","))
         scenarios = [sc for sc in scenarios if sc.name.startswith(prefixes)]
