@@ -35,3 +35,13 @@ def test_bench_refuses_unknown_names(tmp_path, capsys):
     assert main(["--json", str(tmp_path / "x.json"), "--variants", "nope", "--no-node"]) == 2
     assert "unknown variant" in capsys.readouterr().err
     assert main(["--json", str(tmp_path / "x.json"), "--scenarios", "nope", "--no-node"]) == 2
+
+
+def test_the_four_ellipse_van_der_pol_scenario_is_passed_by_the_escape(tmp_path):
+    out = tmp_path / "bench.json"
+    assert main(["--quick", "--json", str(out), "--no-node", "--scenarios", "vdp_4_ellipses",
+                 "--variants", "ours_fatrop"]) == 0
+    (record,) = json.loads(out.read_text())["records"]
+    assert record["scenario"] == "vdp_4_ellipses" and record["fallbacks"] == 0
+    # one ellipse covers the steady states x1 in [2.95, 3.45]: without the escape the loop rests in front
+    assert record["final_error"] < 0.05 and record["max_penetration"] <= 1e-3 and record["max_abs_x1x2"] <= 2.001

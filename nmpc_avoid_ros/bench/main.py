@@ -103,7 +103,7 @@ ROBOT_ELLIPSES = (Ellipse((-4.0, -3.5), (1.2, 0.8), 0.3, "output"), Ellipse((0.0
                   Ellipse((3.5, 2.0), (0.9, 0.9), 0.0, "output"), Ellipse((5.5, 5.0), (0.8, 1.2), -0.4, "output"))
 
 
-#: four ellipses on the paper's way from x1 = -5 to 5 (one across x2 = 0 at x1 = 2.6-3.8, so the
+#: four ellipses on the paper's way from x1 = -5 to 5 (one across x2 = 0 at x1 = 2.95-3.45, so the
 #: steady states there are inside it and the loop needs the local-minimum escape to pass)
 VDP_ELLIPSES = (Ellipse((-3.0, 0.75), (0.6, 0.25), 0.2), Ellipse((-0.5, 1.5), (0.8, 0.35), 0.0),
                 Ellipse((1.5, -0.9), (0.7, 0.5), 0.4), Ellipse((3.2, -0.5), (0.6, 0.55), 0.0))
