@@ -162,6 +162,7 @@ class NmpcController:
                                          max_solve_time=self.settings.max_solve_time * COLD_START_TIME_FACTOR)
             self.cold_nlp = TrackingNlp(cold, self.model)
         self._regions: tuple[Region, ...] = ()
+        self._moving = False
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
         self._plan: _Plan | None = None
@@ -199,6 +200,18 @@ class NmpcController:
         """Replace the obstacle regions (RegionError if they do not fit the slots; nothing changes then)."""
         slots = self.nlp.slot_layout.pack(list(regions), self.nlp.output_frame_available)
         self._regions, self._slots = tuple(regions), slots
+        self._moving = any(r.moving for r in self._regions)
+
+    def slot_values(self, time: float | None = None) -> np.ndarray:
+        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s).
+
+        Moving regions are placed where they are at `time` and predicted stage by stage when
+        `predict_obstacles` is on (None: each pose counts as valid at x(0)); off, or with only
+        static regions, the slots are the ones packed by `set_regions`.
+        """
+        if not (self._moving and self.settings.predict_obstacles and time is not None):
+            return self._slots
+        return self.nlp.slot_layout.pack(list(self._regions), self.nlp.output_frame_available, time)
 
     def set_keep_in_active(self, active: Sequence[bool]) -> None:
         """Switch the configured algebraic regions on or off (one flag per `keep_in` entry)."""
@@ -219,7 +232,7 @@ class NmpcController:
         return new
 
     def update_settings(self, **changes: float | Sequence[float]) -> None:
-        """Change run-time fields (mu, kappa, weights) for the next step; nothing is rebuilt."""
+        """Change run-time fields (mu, kappa, weights, predict_obstacles) for the next step; nothing is rebuilt."""
         self.settings = self.checked_settings(**changes)
 
     def reset(self) -> None:
@@ -229,27 +242,34 @@ class NmpcController:
         self._reseed = False
         self._escape_wait = 0
 
-    def parameters(self, x: np.ndarray, y_t: np.ndarray) -> np.ndarray:
-        """The NLP parameter vector for state x [n] and target y_t [p] with the current settings and regions."""
+    def parameters(self, x: np.ndarray, y_t: np.ndarray, time: float | None = None) -> np.ndarray:
+        """The NLP parameter vector for state x [n] measured at `time` (s) and target y_t [p] with the
+        current settings and regions (see `slot_values`)."""
         s = self.settings
         return self.nlp.parameters(
-            x, y_t, self._slots, kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
+            x, y_t, self.slot_values(time), kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
             input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
         )
 
     # -- the sample --------------------------------------------------------------------------
-    def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None) -> StepResult:
+    def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None,
+             time: float | None = None) -> StepResult:
         """Solve for the measured state x [n] and target y_t [p]; regions replace the current ones if given.
+
+        `time` (s, the clock of the regions' stamps) is when x was measured: moving regions are
+        predicted from it (see `slot_values`).
 
         Raises InputError for a wrong-size or non-finite x or y_t and RegionError for regions that
         do not fit; the controller's state is unchanged then.
         """
         x = validate_vector("state", x, self.model.n)
         y_t = validate_vector("target", y_t, self.model.p)
+        if time is not None and not math.isfinite(time):
+            raise InputError(f"time must be finite seconds, got {time}")
         if regions is not None:
             self.set_regions(regions)
         s = self.settings
-        par = self.parameters(x, y_t)
+        par = self.parameters(x, y_t, time)
         previous_y_a = None if self._plan is None else self._plan.y_a.copy()
         attempt = self._solve(x, y_t, par)
         if not attempt.usable:

@@ -89,8 +89,9 @@ class ProblemParts:
     Attributes:
         par: the parameter vector (see `parameters` for its order), and its pieces x0, y_t,
             kappa, mu, q, r, keep_active, slot_par.
-        avoidance: (x [n], u [m]) -> active * g of every keep-in expression and obstacle slot
-            [n_depth] (> 0 inside a region to avoid).
+        avoidance: (x [n], u [m], elapsed s) -> active * g of every keep-in expression and obstacle
+            slot [n_depth] (> 0 inside a region to avoid), moving obstacles taken `elapsed` s after
+            x(0): stage k at k Ts, and the steady state x_a (= x(N)) at N Ts.
         hard_g: Function (x, u) -> hard inequalities g <= 0 [n_hard]; hard_uses_u per row.
         slot_layout, output_frame_available, closed_form, n_keep_in.
     """
@@ -149,11 +150,12 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     slot_par = ca.SX.sym("slots", slots.size)
     par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, slot_par)
 
-    def avoidance(x, u):
-        """The region functions g at one point (keep-in expressions, then obstacle slots)."""
+    def avoidance(x, u, elapsed: float = 0.0):
+        """The region functions g at one point (keep-in expressions, then obstacle slots), with
+        moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts)."""
         state_point = x[list(s.plane)]
         output_point = mdl.output(x, u)[list(s.output_plane)] if output_frame_available else None
-        return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, state_point, output_point))
+        return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, state_point, output_point, elapsed))
 
     return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, hard_g, hard_uses_u,
                         len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
@@ -351,7 +353,8 @@ class TrackingNlp(NlpBase):
         states = [x0] + [X[:, j] for j in range(N)]
         g, lbg, ubg = [], [], []
         tracking = 0
-        depth = [avoidance(x_a, u_a)]
+        ts = s.sample_time
+        depth = [avoidance(x_a, u_a, N * ts)]  # x_a = x(N): moving obstacles where they are at t_N
         for j in range(N):
             g.append(states[j + 1] - f(states[j], U[:, j]))
             lbg += [0.0] * n
@@ -359,14 +362,14 @@ class TrackingNlp(NlpBase):
             dx = states[j] - x_a
             du = U[:, j] - u_a
             tracking += ca.dot(q * dx, dx) + ca.dot(r * du, du)
-            depth.append(avoidance(states[j], U[:, j]))
+            depth.append(avoidance(states[j], U[:, j], j * ts))
             if hard:
                 rows = [i for i in hard if j > 0 or hard_uses_u[i]]
                 if rows:
                     g.append(hard_g(states[j], U[:, j])[rows])
                     lbg += [-np.inf] * len(rows)
                     ubg += [0.0] * len(rows)
-        depth.append(avoidance(states[N], u_a))
+        depth.append(avoidance(states[N], u_a, N * ts))
         # F = max(0, g)^2 is only C1, which costs IPOPT many iterations near region boundaries.
         # The smooth equivalent: slacks s >= 0, s >= g, cost s^2 (at the optimum s = max(0, g)).
         depth = ca.vertcat(*depth)

@@ -7,10 +7,18 @@ Regions that arrive at run time (ellipses, rotated boxes, convex polygons) live 
 parameter slots of the NLP with an active flag, so changing them never rebuilds the problem.
 Each region lies in a plane spanned by two coordinates of the state (`frame="state"`) or the
 output (`frame="output"`); which coordinates is a setting of the controller (`plane`).
+
+Moving regions: every region carries a velocity (plane units per second, in its own plane and
+frame) and the time `stamp` (s) at which its pose was valid. Stage k of the horizon, at time
+t_k = t_0 + k Ts, sees the region translated to c + v (t_k - stamp); the slot holds v and
+stamp - t_0, so this is a parameter change and nothing is rebuilt. The rotation stays fixed over
+the horizon (a yaw rate is not predicted). A static region (v = 0) gives exactly the same numbers
+as a region without motion: its shift is an exact floating-point zero.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -21,10 +29,13 @@ import numpy as np
 from .errors import RegionError
 
 FRAMES = ("state", "output")
-#: parameters per ellipse slot: active, in_state_frame, cx, cy, 1/a, 1/b, cos(yaw), sin(yaw)
-ELLIPSE_SLOT_SIZE = 8
-#: fixed parameters per polygon slot before the half-planes: active, in_state_frame
-POLYGON_SLOT_HEADER = 2
+#: parameters per ellipse slot: active, in_state_frame, cx, cy, 1/a, 1/b, cos(yaw), sin(yaw),
+#: then its motion: vx, vy, stamp - t_0
+ELLIPSE_SLOT_SIZE = 11
+#: index of the motion (vx, vy, stamp - t_0) in an ellipse slot
+ELLIPSE_MOTION = 8
+#: fixed parameters per polygon slot before the half-planes: active, in_state_frame, vx, vy, stamp - t_0
+POLYGON_SLOT_HEADER = 5
 MAX_COORDINATE = 1e6
 
 
@@ -43,14 +54,63 @@ def _check_frame(frame: str) -> None:
         raise RegionError(f"frame must be one of {FRAMES}, got {frame!r}")
 
 
+def _motion(velocity: Sequence[float], stamp: float) -> tuple[tuple[float, float], float]:
+    """Checked (velocity, stamp); a static region's stamp is 0.0, as its pose holds at all times."""
+    vel = _finite("velocity", velocity)
+    if len(vel) != 2:
+        raise RegionError(f"velocity must have 2 components, got {vel}")
+    try:
+        t = float(stamp)
+    except (TypeError, ValueError, OverflowError):
+        raise RegionError(f"stamp must be a number of seconds, got {stamp!r}") from None
+    if not math.isfinite(t):
+        raise RegionError(f"stamp must be finite seconds, got {t}")
+    if vel == (0.0, 0.0):
+        return (0.0, 0.0), 0.0  # also turns -0.0 into 0.0, so equal regions compare equal
+    return (vel[0], vel[1]), t
+
+
+def _motion_values(region: Ellipse | Polygon, now: float | None, predict: bool) -> list[float]:
+    """vx, vy, stamp - now of a slot; zeros when not predicting or the region is static."""
+    if not predict or region.velocity == (0.0, 0.0):
+        return [0.0, 0.0, 0.0]
+    return [*region.velocity, 0.0 if now is None else region.stamp - float(now)]
+
+
+class _Moving:
+    """Motion shared by the region types: `velocity` (plane units/s) and `stamp` (s) of the pose."""
+
+    velocity: tuple[float, float]
+    stamp: float
+
+    @property
+    def moving(self) -> bool:
+        return self.velocity != (0.0, 0.0)
+
+    @property
+    def reference_point(self) -> tuple[float, float]:
+        """A point that moves with the region (ellipse centre, polygon vertex mean)."""
+        raise NotImplementedError
+
+    def offset_at(self, t: float) -> tuple[float, float]:
+        """Translation of the pose from `stamp` to time t (s)."""
+        dt = float(t) - self.stamp
+        return self.velocity[0] * dt, self.velocity[1] * dt
+
+
 @dataclass(frozen=True)
-class Ellipse:
-    """Ellipse to avoid: centre (m or state units), semi-axes a, b (> 0), yaw (rad)."""
+class Ellipse(_Moving):
+    """Ellipse to avoid: centre (m or state units), semi-axes a, b (> 0), yaw (rad).
+
+    `velocity` (units/s) moves the centre; `center` is the centre at time `stamp` (s).
+    """
 
     center: tuple[float, float]
     semi_axes: tuple[float, float]
     yaw: float = 0.0
     frame: str = "state"
+    velocity: tuple[float, float] = (0.0, 0.0)
+    stamp: float = 0.0
 
     def __post_init__(self) -> None:
         center = _finite("ellipse centre", self.center)
@@ -61,28 +121,53 @@ class Ellipse:
         if min(axes) <= 1e-9:
             raise RegionError(f"ellipse semi-axes must be positive, got {axes}")
         _check_frame(self.frame)
+        velocity, stamp = _motion(self.velocity, self.stamp)
         object.__setattr__(self, "center", center)
         object.__setattr__(self, "semi_axes", axes)
         object.__setattr__(self, "yaw", yaw)
+        object.__setattr__(self, "velocity", velocity)
+        object.__setattr__(self, "stamp", stamp)
 
-    def slot_values(self) -> np.ndarray:
-        """Parameter vector of one ellipse slot (length ELLIPSE_SLOT_SIZE), active."""
+    def slot_values(self, now: float | None = None, predict: bool = True) -> np.ndarray:
+        """Parameter vector of one ellipse slot (length ELLIPSE_SLOT_SIZE), active.
+
+        `now`: time (s) of the sample's x(0); None places the pose at x(0)'s time. Without
+        `predict` the motion is zero: the region stays where it was at `stamp`.
+        """
         return np.array(
             [1.0, float(self.frame == "state"), *self.center, 1 / self.semi_axes[0], 1 / self.semi_axes[1],
-             math.cos(self.yaw), math.sin(self.yaw)]
+             math.cos(self.yaw), math.sin(self.yaw), *_motion_values(self, now, predict)]
         )
 
+    @property
+    def reference_point(self) -> tuple[float, float]:
+        return self.center
+
+    def with_motion(self, velocity: Sequence[float], stamp: float) -> Ellipse:
+        """The same ellipse moving at `velocity` (units/s), its pose valid at `stamp` (s)."""
+        return dataclasses.replace(self, velocity=tuple(velocity), stamp=stamp)
+
+    def at(self, t: float) -> Ellipse:
+        """The ellipse at time t (s): centre moved by velocity * (t - stamp), same velocity."""
+        dx, dy = self.offset_at(t)
+        return dataclasses.replace(self, center=(self.center[0] + dx, self.center[1] + dy), stamp=float(t))
+
     def depth(self, point: Sequence[float]) -> float:
-        """g at a point of the plane: 1 - normalised squared radius (> 0 inside)."""
+        """g at a point of the plane at time `stamp`: 1 - normalised squared radius (> 0 inside)."""
         return float(ellipse_g(np.asarray(point, float), self.slot_values()))
 
 
 @dataclass(frozen=True)
-class Polygon:
-    """Convex polygon to avoid, vertices in order (either orientation), at least 3."""
+class Polygon(_Moving):
+    """Convex polygon to avoid, vertices in order (either orientation), at least 3.
+
+    `velocity` (units/s) translates it; `vertices` are its corners at time `stamp` (s).
+    """
 
     vertices: tuple[tuple[float, float], ...]
     frame: str = "state"
+    velocity: tuple[float, float] = (0.0, 0.0)
+    stamp: float = 0.0
 
     def __post_init__(self) -> None:
         try:
@@ -101,7 +186,10 @@ class Polygon:
         if len(verts) < 3:
             raise RegionError(f"a polygon needs at least 3 distinct vertices, got {len(verts)}")
         _check_frame(self.frame)
+        velocity, stamp = _motion(self.velocity, self.stamp)
         object.__setattr__(self, "vertices", tuple(verts))
+        object.__setattr__(self, "velocity", velocity)
+        object.__setattr__(self, "stamp", stamp)
         self.half_planes()  # validates convexity and non-degeneracy
 
     def half_planes(self) -> np.ndarray:
@@ -125,13 +213,31 @@ class Polygon:
         offsets = np.einsum("ij,ij->i", normals, pts)
         return np.column_stack([normals, offsets])
 
-    def slot_values(self, max_vertices: int) -> np.ndarray:
-        """Parameter vector of one polygon slot; unused half-planes repeat the first one."""
+    def slot_values(self, max_vertices: int, now: float | None = None, predict: bool = True) -> np.ndarray:
+        """Parameter vector of one polygon slot; unused half-planes repeat the first one.
+
+        `now` and `predict` as in `Ellipse.slot_values`.
+        """
         planes = self.half_planes()
         if len(planes) > max_vertices:
             raise RegionError(f"polygon has {len(planes)} vertices, more than the capacity {max_vertices}")
         padded = np.vstack([planes, np.repeat(planes[:1], max_vertices - len(planes), axis=0)])
-        return np.concatenate([[1.0, float(self.frame == "state")], padded.ravel()])
+        return np.concatenate([[1.0, float(self.frame == "state"), *_motion_values(self, now, predict)],
+                               padded.ravel()])
+
+    @property
+    def reference_point(self) -> tuple[float, float]:
+        x, y = np.mean(np.asarray(self.vertices), axis=0)
+        return float(x), float(y)
+
+    def with_motion(self, velocity: Sequence[float], stamp: float) -> Polygon:
+        """The same polygon moving at `velocity` (units/s), its vertices valid at `stamp` (s)."""
+        return dataclasses.replace(self, velocity=tuple(velocity), stamp=stamp)
+
+    def at(self, t: float) -> Polygon:
+        """The polygon at time t (s): translated by velocity * (t - stamp), same velocity."""
+        dx, dy = self.offset_at(t)
+        return dataclasses.replace(self, vertices=tuple((x + dx, y + dy) for x, y in self.vertices), stamp=float(t))
 
     def depth(self, point: Sequence[float]) -> float:
         """g at a point: distance to the nearest edge, positive inside."""
@@ -139,8 +245,9 @@ class Polygon:
         return float(np.min(planes[:, 2] - planes[:, :2] @ np.asarray(point, float)))
 
 
-def rotated_box(center: Sequence[float], size: Sequence[float], yaw: float = 0.0, frame: str = "state") -> Polygon:
-    """Rectangle of full side lengths `size` centred at `center`, rotated by `yaw` rad."""
+def rotated_box(center: Sequence[float], size: Sequence[float], yaw: float = 0.0, frame: str = "state",
+                velocity: Sequence[float] = (0.0, 0.0), stamp: float = 0.0) -> Polygon:
+    """Rectangle of full side lengths `size` centred at `center` (at time `stamp`), rotated by `yaw` rad."""
     centre, sides, (yaw,) = _finite("box centre", center), _finite("box size", size), _finite("box yaw", (yaw,))
     if len(centre) != 2 or len(sides) != 2:
         raise RegionError(f"a box needs a 2-d centre and 2 sides, got {centre} and {sides}")
@@ -149,7 +256,8 @@ def rotated_box(center: Sequence[float], size: Sequence[float], yaw: float = 0.0
         raise RegionError(f"box sides must be positive, got {(sx, sy)}")
     c, s = math.cos(yaw), math.sin(yaw)
     corners = [(-sx / 2, -sy / 2), (sx / 2, -sy / 2), (sx / 2, sy / 2), (-sx / 2, sy / 2)]
-    return Polygon(tuple((cx + c * dx - s * dy, cy + s * dx + c * dy) for dx, dy in corners), frame)
+    return Polygon(tuple((cx + c * dx - s * dy, cy + s * dx + c * dy) for dx, dy in corners), frame,
+                   tuple(velocity), stamp)
 
 
 Region = Ellipse | Polygon
@@ -174,14 +282,28 @@ def _plane_point(state_point, output_point, slot):
     return state_point if output_point is None else slot[1] * state_point + (1 - slot[1]) * output_point
 
 
-def ellipse_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX) -> ca.MX:
-    """active * g of one ellipse slot; its penalty F is max(0, active * g)^2."""
-    return slot[0] * ellipse_g(_plane_point(state_point, output_point, slot), slot)
+def _relative_point(point, velocity, stamp, elapsed: float):
+    """The point in the region's frame at the stage time: p - v (t_k - stamp), t_k - t_0 = `elapsed`.
+
+    Moving the point against the motion is the same as moving the region; for v = 0 the shift is
+    an exact zero, so a static region gives the same numbers as before motion existed.
+    """
+    dt = elapsed - stamp
+    return ca.vertcat(point[0] - velocity[0] * dt, point[1] - velocity[1] * dt)
 
 
-def polygon_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX, max_vertices: int) -> ca.MX:
-    """active * depth of one polygon slot, depth = min over edges of b - n . p (> 0 inside)."""
-    point = _plane_point(state_point, output_point, slot)
+def ellipse_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX, elapsed: float = 0.0) -> ca.MX:
+    """active * g of one ellipse slot at the stage `elapsed` s after x(0); penalty max(0, active * g)^2."""
+    motion = ELLIPSE_MOTION
+    point = _relative_point(_plane_point(state_point, output_point, slot), slot[motion:motion + 2],
+                            slot[motion + 2], elapsed)
+    return slot[0] * ellipse_g(point, slot)
+
+
+def polygon_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX, max_vertices: int,
+                  elapsed: float = 0.0) -> ca.MX:
+    """active * depth of one polygon slot, depth = min over edges of b - n . p (> 0 inside), at the stage `elapsed`."""
+    point = _relative_point(_plane_point(state_point, output_point, slot), slot[2:4], slot[4], elapsed)
     depth = None
     for k in range(max_vertices):
         row = POLYGON_SLOT_HEADER + 3 * k
@@ -208,8 +330,12 @@ class SlotLayout:
     def size(self) -> int:
         return self.max_ellipses * ELLIPSE_SLOT_SIZE + self.max_polygons * polygon_slot_size(self.max_polygon_vertices)
 
-    def pack(self, regions: Sequence[Region], output_frame_available: bool = True) -> np.ndarray:
+    def pack(self, regions: Sequence[Region], output_frame_available: bool = True, now: float | None = None,
+             predict: bool = True) -> np.ndarray:
         """All regions -> the flat slot parameter vector (inactive slots are zeros).
+
+        `now`: time (s) of the sample's x(0), for moving regions (None: each pose is taken as
+        valid at x(0)); `predict` False freezes every region where it was at its stamp.
 
         Raises RegionError when there are more regions of a kind than slots, or a region uses the
         output frame on a model whose output has fewer than two coordinates.
@@ -228,20 +354,24 @@ class SlotLayout:
             raise RegionError("this model's output has fewer than 2 coordinates: use frame 'state'")
         values = np.zeros(self.size)
         for i, e in enumerate(ellipses):
-            values[i * ELLIPSE_SLOT_SIZE:(i + 1) * ELLIPSE_SLOT_SIZE] = e.slot_values()
+            values[i * ELLIPSE_SLOT_SIZE:(i + 1) * ELLIPSE_SLOT_SIZE] = e.slot_values(now, predict)
         base = self.max_ellipses * ELLIPSE_SLOT_SIZE
         width = polygon_slot_size(self.max_polygon_vertices)
         for i, poly in enumerate(polygons):
-            values[base + i * width: base + (i + 1) * width] = poly.slot_values(self.max_polygon_vertices)
+            values[base + i * width: base + (i + 1) * width] = poly.slot_values(self.max_polygon_vertices, now, predict)
         return values
 
-    def depths(self, slots: ca.MX, state_point: ca.MX, output_point: ca.MX | None) -> ca.MX:
-        """active * g of every slot at one point [n_slots]; the penalty F is sum max(0, .)^2."""
-        terms = [ellipse_depth(state_point, output_point, slots[i * ELLIPSE_SLOT_SIZE:(i + 1) * ELLIPSE_SLOT_SIZE])
+    def depths(self, slots: ca.MX, state_point: ca.MX, output_point: ca.MX | None, elapsed: float = 0.0) -> ca.MX:
+        """active * g of every slot at one point [n_slots], at the stage `elapsed` s after x(0).
+
+        The penalty F is sum max(0, .)^2.
+        """
+        terms = [ellipse_depth(state_point, output_point, slots[i * ELLIPSE_SLOT_SIZE:(i + 1) * ELLIPSE_SLOT_SIZE],
+                               elapsed)
                  for i in range(self.max_ellipses)]
         base = self.max_ellipses * ELLIPSE_SLOT_SIZE
         width = polygon_slot_size(self.max_polygon_vertices)
         for i in range(self.max_polygons):
             slot = slots[base + i * width: base + (i + 1) * width]
-            terms.append(polygon_depth(state_point, output_point, slot, self.max_polygon_vertices))
+            terms.append(polygon_depth(state_point, output_point, slot, self.max_polygon_vertices, elapsed))
         return ca.vertcat(*terms)

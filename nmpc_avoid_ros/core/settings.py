@@ -103,6 +103,14 @@ class ControllerSettings:
                                low=0.0, low_open=True)
     feasibility_tolerance: float = setting(1e-6, "a budget-cut iterate is applied only if its constraint violation "
                                                  "is below this", runtime=True, low=0.0, low_open=True)
+    predict_obstacles: bool = setting(True, "predict moving obstacles over the horizon (stage k sees c + v (t_k - "
+                                            "stamp)); false: each stays where it was last seen", runtime=True)
+    max_obstacle_speed: float = setting(3.0, "largest obstacle speed accepted, plane units/s: a faster given velocity "
+                                             "is refused, a faster apparent motion between two stamped updates is a "
+                                             "jump and resets the estimate", runtime=True, low=0.0, low_open=True)
+    max_obstacle_stamp_skew: float = setting(2.0, "a moving obstacle whose header.stamp lies further than this (s) "
+                                                  "from its receipt is refused (given velocity) or its estimate reset",
+                                             runtime=True, low=0.0, low_open=True)
 
     def __post_init__(self) -> None:
         normalise(self)

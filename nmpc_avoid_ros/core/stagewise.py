@@ -143,7 +143,7 @@ class StagewiseNlp(NlpBase):
                 g.append(X[0] - parts.x0)
                 lbg += [0.0] * n
                 ubg += [0.0] * n
-                depth_a = parts.avoidance(x_a, u_a)
+                depth_a = parts.avoidance(x_a, u_a, N * s.sample_time)  # x_a = x(N): obstacles at t_N
                 g.append(s_a - depth_a)
                 lbg += [0.0] * nd
                 ubg += [inf] * nd
@@ -159,7 +159,7 @@ class StagewiseNlp(NlpBase):
                 cost += v_offset + 2 * parts.mu * ca.dot(s_a, s_a) + regularise * ca.dot(s_a, s_a)
                 slack_vars.append(s_a)
                 slack_depths.append(depth_a)
-            depth = parts.avoidance(X[k], U[k])
+            depth = parts.avoidance(X[k], U[k], k * s.sample_time)
             g.append(S[k] - depth)
             lbg += [0.0] * nd
             ubg += [inf] * nd

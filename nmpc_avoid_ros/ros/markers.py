@@ -11,6 +11,13 @@ controller avoids. `RegionStore` applies those messages with RViz's semantics:
   LINE_STRIP -> convex Polygon through `points` (transformed by `pose`, as RViz draws it);
 - `header.frame_id` names the plane: 'state' or 'output' ('' -> the store's default).
 
+Moving regions: `header.stamp` is the time the pose was valid. A velocity (plane units/s, in the
+marker's plane) is either given explicitly as the token `velocity=<vx>,<vy>` in the marker's
+`text` (RViz and Foxglove ignore `text` for these types, so the marker draws the same; other
+tokens are left alone; a zero stamp then means "valid when received"), or estimated from
+successive updates of the same (ns, id) with non-zero stamps (core/motion.py: filtered, reset on
+jumps, bounded by max_speed). A marker with a zero stamp and no explicit velocity is static.
+
 A bad marker is rejected on its own, with a reason, and the previous region under its key stays
 in force; nothing in a message can make the store raise.
 """
@@ -27,6 +34,7 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.errors import InputError, RegionError
+from ..core.motion import VelocityEstimator
 from ..core.regions import FRAMES, Ellipse, Polygon, Region, SlotLayout, rotated_box
 from .conversions import seconds_to_duration, seconds_to_time, stamp_to_seconds
 
@@ -51,13 +59,15 @@ class ApplyReport:
 
     applied: ADD markers that added or replaced a region; deleted: regions removed by DELETE or
     DELETEALL; rejected: (ns, id, reason) per refused marker (id MESSAGE_ID = the whole message);
-    changed: the set of stored regions differs from before the message.
+    changed: the set of stored regions differs from before the message; resets: (ns, id, reason)
+    per accepted marker whose velocity estimate was reset (a jump, a skewed or decreasing stamp).
     """
 
     applied: int = 0
     deleted: int = 0
     rejected: list[tuple[str, int, str]] = field(default_factory=list)
     changed: bool = False
+    resets: list[tuple[str, int, str]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -81,6 +91,8 @@ class RegionStore:
         default_frame: str = "state",
         output_frame_available: bool = True,
         max_markers_per_message: int = 1000,
+        max_speed: float = 3.0,
+        max_stamp_skew: float = 2.0,
     ) -> None:
         if default_frame not in FRAMES:
             raise InputError(f"default_frame must be one of {FRAMES}, got {default_frame!r}")
@@ -96,6 +108,7 @@ class RegionStore:
         self.max_markers_per_message = int(max_markers_per_message)
         self._entries: dict[tuple[str, int], _Entry] = {}
         self._revision = 0
+        self.motion = VelocityEstimator(max_speed, max_stamp_skew)
 
     @classmethod
     def from_layout(cls, layout: SlotLayout, **kwargs: object) -> RegionStore:
@@ -112,6 +125,7 @@ class RegionStore:
 
     def clear(self) -> None:
         """Forget every region (e.g. on a controller reset)."""
+        self.motion.forget()
         if self._entries:
             self._entries.clear()
             self._revision += 1
@@ -153,6 +167,9 @@ class RegionStore:
             except Exception as exc:  # a malformed message object must never crash the node
                 report.rejected.append((ns, marker_id, f"malformed marker: {type(exc).__name__}: {exc}"))
         after = {key: entry.region for key, entry in self._entries.items()}
+        # velocity tracks live as long as their regions; checked after the whole message, so a
+        # DELETEALL followed by the same keys (a publisher replacing its set) keeps the estimates
+        self.motion.retain(after)
         report.changed = after != before
         if report.changed:
             self._revision += 1
@@ -164,6 +181,7 @@ class RegionStore:
         dead = [key for key, entry in self._entries.items() if entry.expires_at <= now]
         for key in dead:
             del self._entries[key]
+            self.motion.forget(key)
         if dead:
             self._revision += 1
 
@@ -184,6 +202,17 @@ class RegionStore:
             raise InputError(f"lifetime must be >= 0 s (0 = forever), got {lifetime}")
         region = self.marker_to_region(marker)
         self._check_capacity(region, key)
+        stamp, explicit = stamp_to_seconds(marker.header.stamp), velocity_from_text(marker.text)
+        if stamp == 0 and explicit is None:
+            # no stamp to estimate from (a hand-published marker): static, as it always was
+            self.motion.forget(key)
+        else:
+            stamp = stamp or now  # an explicit velocity without a stamp: the pose is valid when received
+            estimate = self.motion.update(key, region.reference_point, stamp, now, explicit)
+            if estimate.reset:
+                report.resets.append((*key, estimate.reset))
+            if estimate.velocity != (0.0, 0.0):
+                region = region.with_motion(estimate.velocity, stamp)
         self._entries[key] = _Entry(region, now + lifetime if lifetime > 0 else math.inf)
         report.applied += 1
 
@@ -265,6 +294,34 @@ def _finite_pair(name: str, x: float, y: float) -> tuple[float, float]:
     if not (math.isfinite(x) and math.isfinite(y)):
         raise RegionError(f"{name} contains NaN or infinite values: ({x}, {y})")
     return x, y
+
+
+#: the token of a marker's `text` that carries an explicit velocity: velocity=<vx>,<vy>
+VELOCITY_KEY = "velocity="
+
+
+def velocity_from_text(text: str) -> tuple[float, float] | None:
+    """The explicit velocity in a marker's `text` (None without a `velocity=` token).
+
+    Tokens are separated by whitespace or ';'. InputError for a token that is not two finite
+    numbers separated by a comma.
+    """
+    for token in str(text).replace(";", " ").split():
+        if token.startswith(VELOCITY_KEY):
+            parts = token[len(VELOCITY_KEY):].split(",")
+            try:
+                vx, vy = (float(v) for v in parts)
+            except ValueError:
+                raise InputError(f"text token {token!r}: velocity must be two numbers 'velocity=vx,vy'") from None
+            if not (math.isfinite(vx) and math.isfinite(vy)):
+                raise InputError(f"text token {token!r}: velocity contains NaN or infinite values")
+            return vx, vy
+    return None
+
+
+def velocity_text(velocity: Sequence[float]) -> str:
+    """The `text` token of an explicit velocity (exact float reprs)."""
+    return f"{VELOCITY_KEY}{float(velocity[0])!r},{float(velocity[1])!r}"
 
 
 def quaternion_to_yaw(q: Quaternion, tolerance: float = QUATERNION_TOLERANCE) -> float:
@@ -369,12 +426,24 @@ def polygon_marker(
 
 def region_marker(region: Region, marker_id: int = 0, ns: str = "nmpc_regions",
                   stamp: Time | float | None = None, lifetime: float = 0.0) -> Marker:
-    """Any core region -> its marker (ellipse -> CYLINDER, polygon -> LINE_STRIP)."""
+    """Any core region -> its marker (ellipse -> CYLINDER, polygon -> LINE_STRIP).
+
+    A moving region is drawn where it is at `stamp` (its own stamp if None) and carries its
+    velocity in `text` (`velocity=vx,vy`).
+    """
+    if not isinstance(region, (Ellipse, Polygon)):
+        raise RegionError(f"not a region: {region!r}")
+    if region.moving:
+        if stamp is None:
+            stamp = region.stamp
+        region = region.at(stamp_to_seconds(stamp) if isinstance(stamp, Time) else float(stamp))
     if isinstance(region, Ellipse):
-        return ellipse_marker(region, marker_id, ns, stamp, lifetime)
-    if isinstance(region, Polygon):
-        return polygon_marker(region, marker_id, ns, stamp, lifetime)
-    raise RegionError(f"not a region: {region!r}")
+        marker = ellipse_marker(region, marker_id, ns, stamp, lifetime)
+    else:
+        marker = polygon_marker(region, marker_id, ns, stamp, lifetime)
+    if region.moving:
+        marker.text = velocity_text(region.velocity)
+    return marker
 
 
 def delete_marker(ns: str, marker_id: int) -> Marker:

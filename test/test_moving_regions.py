@@ -1,0 +1,107 @@
+"""Moving regions in the core: stage k sees c + v (t_k - stamp), as parameters, for both formulations."""
+
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from nmpc_avoid_ros.core.closed_loop import make_plant
+from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.errors import RegionError
+from nmpc_avoid_ros.core.regions import Ellipse, SlotLayout, rotated_box
+from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
+
+LAYOUT = SlotLayout(max_ellipses=1, max_polygons=1, max_polygon_vertices=4)
+ROBOT = default_config_path().with_name("mobile_robot.yaml")
+
+
+def stage_depths() -> ca.Function:
+    """depths(point, slots, elapsed) as the NLP builds them at a stage `elapsed` s after x(0)."""
+    point, slots, elapsed = ca.SX.sym("p", 2), ca.SX.sym("s", LAYOUT.size), ca.SX.sym("t")
+    return ca.Function("d", [point, slots, elapsed], [LAYOUT.depths(slots, point, None, elapsed)])
+
+
+finite = st.floats(-5.0, 5.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(cx=finite, cy=finite, vx=finite, vy=finite, stamp=st.floats(-3.0, 3.0), now=st.floats(-3.0, 3.0),
+       k=st.integers(0, 20), px=finite, py=finite)
+def test_stage_k_sees_the_region_where_it_will_be(cx, cy, vx, vy, stamp, now, k, px, py):
+    """The symbolic slot depth at stage k equals the numeric depth of the region moved to now + k Ts."""
+    ts = 0.25
+    ellipse = Ellipse((cx, cy), (0.7, 0.4), 0.3, velocity=(vx, vy), stamp=stamp)
+    box = rotated_box((cy, cx), (1.0, 0.6), -0.2, velocity=(vy, vx), stamp=stamp)
+    fn = stage_depths()
+    got = np.asarray(fn((px, py), LAYOUT.pack([ellipse, box], now=now), k * ts)).ravel()
+    t_k = now + k * ts
+    assert got[0] == pytest.approx(ellipse.at(t_k).depth((px, py)), abs=1e-9)
+    assert got[1] == pytest.approx(box.at(t_k).depth((px, py)), abs=1e-9)
+    # prediction off: the region stays where it was at its stamp, at every stage
+    frozen = np.asarray(fn((px, py), LAYOUT.pack([ellipse, box], now=now, predict=False), k * ts)).ravel()
+    assert frozen[0] == pytest.approx(ellipse.depth((px, py)), abs=1e-9)
+    assert frozen[1] == pytest.approx(box.depth((px, py)), abs=1e-9)
+
+
+def test_static_region_slots_do_not_depend_on_time():
+    """v = 0: the motion entries are exact zeros whatever the stamp and the sample time."""
+    ellipse = Ellipse((1.0, 2.0), (0.5, 0.3), 0.4, stamp=123.0)
+    box = rotated_box((0.0, 0.0), (1.0, 2.0), 0.1, stamp=-7.0)
+    reference = LAYOUT.pack([ellipse, box])
+    for now in (0.0, 5.5, 1e6):
+        assert np.array_equal(LAYOUT.pack([ellipse, box], now=now), reference)
+    assert np.all(reference[8:11] == 0.0) and np.all(reference[11 + 2:11 + 5] == 0.0)
+
+
+def test_moved_region_keeps_shape_and_velocity():
+    e = Ellipse((0.0, -4.0), (0.6, 0.6), 0.2, "output", velocity=(0.1, 0.5), stamp=2.0)
+    later = e.at(6.0)
+    assert later.center == pytest.approx((0.4, -2.0)) and later.stamp == 6.0
+    assert (later.semi_axes, later.yaw, later.velocity, later.frame) == (e.semi_axes, e.yaw, e.velocity, e.frame)
+    box = rotated_box((1.0, 1.0), (2.0, 2.0), velocity=(-1.0, 0.0), stamp=0.0)
+    assert np.mean(box.at(3.0).vertices, axis=0) == pytest.approx((-2.0, 1.0))
+
+
+@pytest.mark.parametrize("velocity, stamp", [((math.nan, 0.0), 0.0), ((0.0, math.inf), 0.0), ((1.0,), 0.0),
+                                             ((0.0, 0.0), math.nan), ((0.0, 0.0), "soon")])
+def test_bad_motion_is_refused(velocity, stamp):
+    with pytest.raises(RegionError):
+        Ellipse((0.0, 0.0), (1.0, 1.0), velocity=velocity, stamp=stamp)
+
+
+def robot_settings(solver: str, predict: bool) -> ControllerSettings:
+    params = load_params_file(ROBOT).section("controller")
+    return ControllerSettings.from_params(params).replace(solver=solver, predict_obstacles=predict, horizon=16,
+                                                          max_solve_time=30.0)
+
+
+def crossing(controller: NmpcController, steps: int = 56) -> float:
+    """A walker crosses the straight path of the robot; returns the deepest penetration (g = 1 - r^2)."""
+    plant = make_plant("continuous", controller)
+    walker = Ellipse((0.0, -4.0), (0.6, 0.6), 0.0, "output", velocity=(0.0, 0.5), stamp=0.0)
+    controller.set_regions([walker])
+    x, deepest, ts = np.array([-8.0, 0.0, 0.0, 0.0]), -math.inf, controller.settings.sample_time
+    for k in range(steps):
+        result = controller.step(x, [8.0, 0.0], time=k * ts)
+        x = plant.advance(x, result.u, ts)
+        deepest = max(deepest, walker.at((k + 1) * ts).depth(x[:2]))
+    return deepest
+
+
+@pytest.mark.parametrize("solver", ["ipopt", "fatrop"])
+def test_prediction_avoids_a_crossing_walker_that_the_static_assumption_hits(solver):
+    """Both formulations; the same NLP object throughout: toggling prediction and moving regions never rebuild."""
+    controller = NmpcController(robot_settings(solver, True))
+    solver_object = controller.nlp.solver
+    predicted = crossing(controller)
+    controller.reset()
+    controller.update_settings(predict_obstacles=False)
+    static = crossing(controller)
+    assert controller.nlp_builds == 1 and controller.nlp.solver is solver_object
+    assert predicted <= 1e-3, f"penetration {predicted} with prediction"
+    assert static > 0.3, f"the static assumption should walk into the walker (depth {static})"
