@@ -29,8 +29,10 @@ class RecordedRun:
 
     Attributes: t [K] s since the first sample; x [K, n] states solved on; u [K, m] commands;
     y_a [K, p]; targets [K, p] (in force at each sample); regions [K] (tuples of core regions in
-    force at each sample); solve_ms [K]; status [K]; last diagnostic counters; final state [n]
-    (the state after the last sample, if recorded).
+    force at each sample, moving ones with their velocity and stamp); solve_ms [K]; status [K];
+    last diagnostic counters; final state [n] (the state after the last sample, if recorded);
+    times [K]: clock time (s, the clock of the marker stamps) at which each state was valid, so
+    that a moving region is evaluated where it was then (`regions_at`).
     """
 
     path: Path
@@ -46,10 +48,20 @@ class RecordedRun:
     counters: dict[str, int] = field(default_factory=dict)
     final_state: np.ndarray | None = None
     sample_time: float = math.nan
+    times: np.ndarray | None = None
 
     @property
     def states_with_final(self) -> np.ndarray:
         return self.x if self.final_state is None else np.vstack([self.x, self.final_state])
+
+    def regions_at(self, k: int, sample_time: float | None = None) -> tuple[Region, ...]:
+        """The regions of sample k (k = K: the final state, one sample time later), moving ones moved to its time."""
+        regions = self.regions[min(k, len(self.regions) - 1)]
+        if self.times is None or not any(r.moving for r in regions):
+            return regions
+        ts = self.sample_time if sample_time is None else sample_time
+        t = self.times[k] if k < len(self.times) else self.times[-1] + (k - len(self.times) + 1) * ts
+        return tuple(r.at(t) if r.moving else r for r in regions)
 
 
 def _topic(bag: Bag, suffix: str) -> str | None:
@@ -60,8 +72,11 @@ def _topic(bag: Bag, suffix: str) -> str | None:
     return None
 
 
-def load_run(path: str | Path, progress: bool = False) -> RecordedRun:
-    """Read a bag into a RecordedRun; BagError if it holds no solved controller sample."""
+def load_run(path: str | Path, progress: bool = False, settings: ControllerSettings | None = None) -> RecordedRun:
+    """Read a bag into a RecordedRun; BagError if it holds no solved controller sample.
+
+    `settings`: the controller's, for the obstacle speed and stamp limits its region store applied.
+    """
     from ..ros.markers import RegionStore  # duck-typed on decoded messages
 
     bag = load_bag(path, progress_every=20000 if progress else 0)
@@ -81,7 +96,9 @@ def load_run(path: str | Path, progress: bool = False) -> RecordedRun:
         for stamp, msg in bag.topics.get(name, []) if name else []:
             events.append((stamp, order, suffix, msg))
     events.sort(key=lambda e: (e[0], e[1]))
-    store = RegionStore(max_markers_per_message=10**6)
+    limits = settings or ControllerSettings()
+    store = RegionStore(max_markers_per_message=10**6, max_speed=limits.max_obstacle_speed,
+                        max_stamp_skew=limits.max_obstacle_stamp_skew)
     target: list[float] | None = None
     targets, regions = [], []
     cursor = 0
@@ -121,6 +138,8 @@ def load_run(path: str | Path, progress: bool = False) -> RecordedRun:
                                                        "samples") if k in samples[-1][1]},
         final_state=final_state,
         sample_time=float(np.median(np.diff(t))) if len(t) > 1 else math.nan,
+        # the controller's own time of each state; older bags: the diagnostic's log time
+        times=np.array([float(v["state_time"]) if "state_time" in v else stamp * 1e-9 for stamp, v in samples]),
     )
 
 
@@ -135,7 +154,8 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
                                "target": target.tolist()}
     if np.all(np.isfinite(target)):
         metrics.update(tracking(y, target, settings.sample_time))
-    pen = penetration(settings, model, xs, run.u, run.regions, y)
+    # moving regions where they were at each state's time (the final state one sample later)
+    pen = penetration(settings, model, xs, run.u, [run.regions_at(k, settings.sample_time) for k in range(len(xs))], y)
     metrics["max_penetration"] = pen["max_penetration"]
     metrics["min_clearance"] = pen["min_clearance"]
     if model.n >= 2:
@@ -149,11 +169,26 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
 
 
 def union_regions(runs: Sequence[RecordedRun]) -> list[Region]:
-    """Every distinct region that was in force at some sample of some run (for drawing)."""
+    """Every distinct static region that was in force at some sample of some run (for drawing;
+    moving ones are drawn as snapshots, see `moving_snapshots`)."""
     seen: list[Region] = []
     for run in runs:
         for regions in run.regions:
             for r in regions:
-                if r not in seen:
+                if not r.moving and r not in seen:
                     seen.append(r)
     return seen
+
+
+def moving_snapshots(run: RecordedRun, count: int = 5, sample_time: float | None = None
+                     ) -> list[tuple[float, np.ndarray, tuple[Region, ...]]]:
+    """(t s since the first sample, state [n], moving regions there) at `count` evenly spread samples."""
+    states = run.states_with_final
+    picks = sorted({int(round(i)) for i in np.linspace(0, len(states) - 1, count)})
+    out = []
+    for k in picks:
+        moving = tuple(r for r in run.regions_at(k, sample_time) if r.moving)
+        if moving:
+            t = run.t[k] if k < len(run.t) else run.t[-1] + (sample_time or run.sample_time)
+            out.append((float(t), states[k], moving))
+    return out

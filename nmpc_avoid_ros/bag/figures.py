@@ -24,7 +24,11 @@ COLORS = ("black", "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple
 
 @dataclass
 class Trace:
-    """One run: times t [K+1] s, states x [K+1, n], inputs u [K, m], artificial outputs y_a [K, p]."""
+    """One run: times t [K+1] s, states x [K+1, n], inputs u [K, m], artificial outputs y_a [K, p].
+
+    regions: static regions; snapshots: (t s, state [n], moving regions at t) to draw the moving
+    obstacles where they were at a few sample times, beside the state at that time.
+    """
 
     label: str
     t: np.ndarray
@@ -32,6 +36,7 @@ class Trace:
     u: np.ndarray
     y_a: np.ndarray | None = None
     regions: Sequence[Region] = field(default_factory=tuple)
+    snapshots: Sequence[tuple[float, np.ndarray, Sequence[Region]]] = field(default_factory=tuple)
 
 
 def shade_product_region(ax: plt.Axes, bound: float, xlim: tuple[float, float], ylim: tuple[float, float]) -> None:
@@ -43,13 +48,28 @@ def shade_product_region(ax: plt.Axes, bound: float, xlim: tuple[float, float], 
     ax.plot([], [], color="#f4b6b6", linewidth=8, label=f"avoided |x1 x2| > {bound:g}")
 
 
-def draw_region(ax: plt.Axes, region: Region, plane: tuple[int, int] = (0, 1), alpha: float = 0.35) -> None:
-    """Draw an ellipse or polygon region of the (plane[0], plane[1]) coordinates."""
+def draw_region(ax: plt.Axes, region: Region, plane: tuple[int, int] = (0, 1), alpha: float = 0.35,
+                edge: str | None = None) -> None:
+    """Draw an ellipse or polygon region of the (plane[0], plane[1]) coordinates (`edge`: outline colour)."""
+    style = {"facecolor": "tab:red", "alpha": alpha, "edgecolor": edge or "none", "lw": 1.2 if edge else 0}
     if isinstance(region, Ellipse):
         ax.add_patch(EllipsePatch(region.center, 2 * region.semi_axes[0], 2 * region.semi_axes[1],
-                                  angle=np.degrees(region.yaw), color="tab:red", alpha=alpha, lw=0))
+                                  angle=np.degrees(region.yaw), **style))
     elif isinstance(region, Polygon):
-        ax.add_patch(PolygonPatch(np.asarray(region.vertices), closed=True, color="tab:red", alpha=alpha, lw=0))
+        ax.add_patch(PolygonPatch(np.asarray(region.vertices), closed=True, **style))
+
+
+def draw_snapshots(ax: plt.Axes, trace: Trace, color: str) -> None:
+    """Moving obstacles at a few sample times, fainter when earlier, each beside the state of that time."""
+    count = len(trace.snapshots)
+    for i, (t, state, regions) in enumerate(trace.snapshots):
+        alpha = 0.12 + 0.3 * (i + 1) / count
+        for region in regions:
+            draw_region(ax, region, alpha=alpha, edge=color)
+            ax.annotate(f"{t:.1f} s", region.reference_point, fontsize=6, ha="center", color="darkred")
+        ax.plot(state[0], state[1], "o", ms=6, mfc="none", mec=color, mew=1.5)
+        ax.annotate(f"{t:.1f} s", (state[0], state[1]), textcoords="offset points", xytext=(4, 4), fontsize=6,
+                    color=color)
 
 
 def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float | None = 2.0,
@@ -59,9 +79,10 @@ def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float 
     fig, ax = plt.subplots(figsize=(7.5, 4.5), dpi=130)
     if product_bound is not None:
         shade_product_region(ax, product_bound, xlim, ylim)
-    for trace in traces:
+    for i, trace in enumerate(traces):
         for region in trace.regions:
             draw_region(ax, region)
+        draw_snapshots(ax, trace, COLORS[i % len(COLORS)])
     for i, trace in enumerate(traces):
         ax.plot(trace.x[:, 0], trace.x[:, 1], "-o", ms=2.5, lw=1.6, color=COLORS[i % len(COLORS)], label=trace.label)
     if traces:

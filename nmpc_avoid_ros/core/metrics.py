@@ -9,7 +9,8 @@ last one, u [K, m] the commands):
 
 * the output of state k is h(x(k), u(k)); the final state uses the last command u(K-1);
 * `regions[k]` is the region set in force at sample k; it applies to x(k); the final state
-  x(K) is measured against the last set (a list shorter than x repeats its last entry);
+  x(K) is measured against the last set (a list shorter than x repeats its last entry); moving
+  regions must be given where they are at each state's time (`Region.at`);
 * penetration is the largest g over the states (keep-in expression: its value, > 0 outside the
   keep-in set, e.g. |x1 x2| - 2; region: `Region.depth`, for an ellipse 1 - normalised r^2),
   0 if no state is ever inside; clearance is -max g (None when there is no region at all);

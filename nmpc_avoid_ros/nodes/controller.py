@@ -25,7 +25,10 @@ since the last solve), `stale_episodes`; `state_age_ms` (age of
 the state this sample used), `max_state_gap_ms` (longest interval between two good states),
 `stale_for_s` (how long the current stale episode lasts) and `last_stale_s` (length of the last
 one that ended); with a solve also `status`, `solver_status`, `iterations`, `solve_time_ms`,
-`step_latency_ms`, `budget_exhausted`, the costs, `y_a` and `state`.
+`step_latency_ms`, `budget_exhausted`, the costs, `y_a`, `state` and `state_time` (node-clock s
+when that state arrived: moving obstacles are predicted from it). Obstacles: `moving_regions`,
+`obstacle_resets` (velocity estimates reset) and `last_obstacle_issue` (the latest refusal or
+reset of a marker, with its reason).
 """
 
 from __future__ import annotations
@@ -125,7 +128,9 @@ class ControllerNode(LifecycleNode):
         s = controller.settings
         self.store = RegionStore(max_ellipses=s.max_ellipses, max_polygons=s.max_polygons,
                                  max_polygon_vertices=s.max_polygon_vertices,
-                                 output_frame_available=controller.nlp.output_frame_available)
+                                 output_frame_available=controller.nlp.output_frame_available,
+                                 max_speed=s.max_obstacle_speed, max_stamp_skew=s.max_obstacle_stamp_skew)
+        self.last_obstacle_issue = ""
         self.regions_revision = self.store.revision
         self.target: np.ndarray | None = None
         if self.options.target is not None:
@@ -138,7 +143,7 @@ class ControllerNode(LifecycleNode):
         self.last_result: StepResult | None = None
         self.last_command = np.zeros(self.m)
         self.counts = {"samples": 0, "fallbacks": 0, "rejected_inputs": 0, "deadline_overruns": 0, "stale": 0,
-                       "states_received": 0, "missed_samples": 0, "stale_episodes": 0}
+                       "states_received": 0, "missed_samples": 0, "stale_episodes": 0, "obstacle_resets": 0}
         self.max_state_gap = 0.0  # s, longest interval between two good states
         self.last_stale = 0.0  # s, length of the last stale episode that ended
 
@@ -261,6 +266,12 @@ class ControllerNode(LifecycleNode):
         report = self.store.apply(msg, self.now())
         for ns, marker_id, reason in report.rejected:
             self.reject(f"marker {ns}/{marker_id}", reason)
+            self.last_obstacle_issue = f"refused {ns}/{marker_id}: {reason}"
+        for ns, marker_id, reason in report.resets:
+            self.counts["obstacle_resets"] += 1
+            self.last_obstacle_issue = f"reset {ns}/{marker_id}: {reason}"
+            self.get_logger().warning(f"marker {ns}/{marker_id}: {reason}",
+                                      throttle_duration_sec=self.options.log_throttle)
         if self.store.revision != revision:
             self.get_logger().info(f"obstacles received: {len(self.store)} region(s) stored",
                                    throttle_duration_sec=self.options.log_throttle)
@@ -285,6 +296,8 @@ class ControllerNode(LifecycleNode):
         except ValueError as exc:  # ConfigError is a ValueError; it names the setting and the rule
             return SetParametersResult(successful=False, reason=str(exc))
         self.controller.settings, self.options, self.safe_input = settings, options, safe_input
+        self.store.motion.max_speed = settings.max_obstacle_speed
+        self.store.motion.max_stamp_skew = settings.max_obstacle_stamp_skew
         self.controller.set_safe_input(safe_input)
         if "target" in values and target is not None:
             self.target = target
@@ -336,13 +349,15 @@ class ControllerNode(LifecycleNode):
         regions = self.store.active(now)  # drops expired regions
         if self.store.revision != self.regions_revision:
             try:
+                count = len(self.controller.regions)
                 self.controller.set_regions(regions)
-                self.get_logger().info(f"{len(regions)} obstacle region(s) active")
+                if len(regions) != count:  # moving obstacles update every message: log changes of the set only
+                    self.get_logger().info(f"{len(regions)} obstacle region(s) active")
             except NmpcError as exc:
                 self.reject("obstacles", str(exc))
             self.regions_revision = self.store.revision
         started = time.perf_counter()
-        result = self.controller.step(self.state, self.target)
+        result = self.controller.step(self.state, self.target, time=self.state_time)
         self.state_solved = True
         self.fresh_state = False
         self.last_result = result
@@ -404,7 +419,9 @@ class ControllerNode(LifecycleNode):
                   "command": str(np.asarray(self.last_command).tolist()),
                   "state_age_ms": f"{self.state_age * 1e3:.1f}", "max_state_gap_ms": f"{self.max_state_gap * 1e3:.1f}",
                   "stale_for_s": f"{0.0 if self.stale_since is None else self.now() - self.stale_since:.3f}",
-                  "last_stale_s": f"{self.last_stale:.3f}"}
+                  "last_stale_s": f"{self.last_stale:.3f}",
+                  "moving_regions": str(sum(r.moving for r in self.controller.regions)),
+                  "last_obstacle_issue": self.last_obstacle_issue}
         if result is not None:
             values.update({
                 "status": result.status, "solver_status": result.solver_status,
@@ -412,7 +429,7 @@ class ControllerNode(LifecycleNode):
                 "step_latency_ms": f"{latency * 1e3:.3f}", "budget_exhausted": str(result.budget_exhausted),
                 "offset_cost": f"{result.offset_cost:.6g}", "avoidance_cost": f"{result.avoidance_cost:.6g}",
                 "tracking_cost": f"{result.tracking_cost:.6g}", "y_a": str(result.y_a.tolist()),
-                "state": str(result.states[0].tolist()),
+                "state": str(result.states[0].tolist()), "state_time": repr(self.state_time),
                 "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
                 "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
             })

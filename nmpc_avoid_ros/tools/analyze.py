@@ -3,8 +3,10 @@
     python -m nmpc_avoid_ros analyze out/with_avoidance.mcap out/without_avoidance.mcap --out out/analysis
 
 Per bag: settling step and time, overshoot, final error, maximum penetration into any avoided
-region and minimum clearance, solve-time median/p99/max, deadline overruns, fallbacks, rejected
-inputs, and whether the file was finished. Several bags are overlaid in the figures.
+region and minimum clearance (moving regions where they were at each sample's time), solve-time
+median/p99/max, deadline overruns, fallbacks, rejected inputs, and whether the file was
+finished. Several bags are overlaid in the figures; the phase portrait draws moving obstacles at
+a few sample times beside the state of that time.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bag.analysis import load_run, run_metrics, union_regions
+from ..bag.analysis import load_run, moving_snapshots, run_metrics, union_regions
 from ..bag.figures import Trace, phase_portrait, time_series
 from ..bag.mcap_io import BagError
 from ..core.errors import NmpcError
@@ -33,7 +35,7 @@ def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: lis
     runs, results = [], []
     for bag, label in zip(bags, labels):
         print(f"analyze: reading {bag} ...", file=sys.stderr, flush=True)
-        run = load_run(bag, progress=True)
+        run = load_run(bag, progress=True, settings=settings)
         if not run.finished:
             print(f"analyze: {bag}: the file was not finished; using the complete chunks recovered",
                   file=sys.stderr)
@@ -43,7 +45,8 @@ def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: lis
     traces = []
     for label, run in runs:
         t = run.t if run.final_state is None else np.append(run.t, run.t[-1] + settings.sample_time)
-        traces.append(Trace(label, t, run.states_with_final, run.u, run.y_a, union_regions([run])))
+        traces.append(Trace(label, t, run.states_with_final, run.u, run.y_a, union_regions([run]),
+                            moving_snapshots(run, sample_time=settings.sample_time)))
     paper_region = model.name == "van_der_pol" and any("x1*x2" in k.replace(" ", "") for k in settings.keep_in)
     target = runs[0][1].targets[-1].tolist()
     lo, hi = settings.state_min, settings.state_max

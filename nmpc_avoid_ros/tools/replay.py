@@ -35,7 +35,7 @@ def resolve(run: RecordedRun, settings: ControllerSettings, tolerance: float = 1
     steps = []
     for k in range(len(run.x)):
         controller.set_regions(run.regions[k])
-        result = controller.step(run.x[k], run.targets[k])
+        result = controller.step(run.x[k], run.targets[k], time=None if run.times is None else run.times[k])
         diff = float(np.max(np.abs(result.u - run.u[k])))
         steps.append({"step": k, "recorded_u": run.u[k].tolist(), "resolved_u": result.u.tolist(), "max_abs_diff": diff,
                       "status": result.status, "y_a": result.y_a.tolist()})
@@ -48,8 +48,24 @@ def resolve(run: RecordedRun, settings: ControllerSettings, tolerance: float = 1
     }
 
 
+def restamped(data: bytes, msg_type: type, shift_ns: int) -> Any:
+    """A recorded MarkerArray with every non-zero marker stamp moved by `shift_ns`."""
+    from rclpy.serialization import deserialize_message
+
+    from ..ros.conversions import seconds_to_time, stamp_to_seconds
+
+    msg = deserialize_message(bytes(data), msg_type)
+    for marker in msg.markers:
+        stamp = stamp_to_seconds(marker.header.stamp)
+        if stamp:
+            marker.header.stamp = seconds_to_time(stamp + shift_ns * 1e-9)
+    return msg
+
+
 def republish(bag: Path, rate: float, wait: float = 1.0) -> int:
     """Publish every recorded message on its topic, spaced by its log times divided by `rate`.
+
+    At rate 1, the obstacles' marker stamps are shifted to the republishing clock (`restamped`).
 
     Publishers are made first and given `wait` seconds to be discovered, so the first messages
     are not published into an empty graph.
@@ -72,11 +88,17 @@ def republish(bag: Path, rate: float, wait: float = 1.0) -> int:
             publishers[topic] = node.create_publisher(msg_type, topic, qos)
         time.sleep(wait)
         start_wall = time.monotonic()
+        # stamped markers are moved to the republishing clock, so a live controller places moving
+        # obstacles in time as it did when recording (their stamps are checked against receipt)
+        shift_ns = node.get_clock().now().nanoseconds - messages[0][0] if messages else 0
         for log_time, topic, data in messages:
             delay = start_wall + (log_time - messages[0][0]) * 1e-9 / rate - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            publishers[topic].publish(bytes(data))  # the recorded CDR bytes, unchanged
+            if topic.rsplit("/", 1)[-1] == "obstacles" and rate == 1.0:
+                publishers[topic].publish(restamped(data, publishers[topic].msg_type, shift_ns))
+            else:
+                publishers[topic].publish(bytes(data))  # the recorded CDR bytes, unchanged
             count += 1
         time.sleep(min(wait, 1.0))  # let reliable transport deliver the last ones
     except KeyboardInterrupt:
@@ -109,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
         params = load_params_file(args.config or default_config_path()).section("controller")
         params.update({k: v for k, v in (("mu", args.mu), ("kappa", args.kappa)) if v is not None})
         settings = ControllerSettings.from_params(params)
-        run = load_run(args.bag)
+        run = load_run(args.bag, settings=settings)
         report = resolve(run, settings, args.tolerance)
     except (BagError, NmpcError) as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
