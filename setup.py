@@ -6,8 +6,8 @@ from setuptools import find_packages, setup
 
 PACKAGE = "nmpc_avoid_ros"
 #: every command of nmpc_avoid_ros/cli.py COMMANDS (test_readme.py keeps README, cli and this list equal)
-EXECUTABLES = ("controller", "plant", "recorder", "simulate", "figures", "analyze", "replay", "demo", "bench",
-               "campaign")
+EXECUTABLES = ("controller", "plant", "recorder", "obstacles", "simulate", "figures", "analyze", "replay", "demo",
+               "bench", "campaign")
 
 setup(
     name=PACKAGE,
@@ -17,6 +17,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config/scenes", glob("config/scenes/*.yaml")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

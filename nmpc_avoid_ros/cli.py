@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "controller": ("nmpc_avoid_ros.nodes.controller", "ROS 2 node: the NMPC controller"),
     "plant": ("nmpc_avoid_ros.nodes.plant", "ROS 2 node: plant simulator (real time or lockstep)"),
     "recorder": ("nmpc_avoid_ros.nodes.recorder", "ROS 2 node: records topics into an MCAP bag (rosbag2 format)"),
+    "obstacles": ("nmpc_avoid_ros.nodes.obstacles", "ROS 2 node: publishes a scene's moving obstacles as markers"),
     "analyze": ("nmpc_avoid_ros.tools.analyze", "bags -> metrics.json and figures, without a ROS graph"),
     "replay": ("nmpc_avoid_ros.tools.replay", "republish a bag, or re-solve the controller on it (--resolve)"),
     "simulate": ("nmpc_avoid_ros.tools.simulate", "offline closed loop of one configuration -> JSON"),
@@ -41,6 +42,7 @@ def _entry(command: str):
 controller_main = _entry("controller")
 plant_main = _entry("plant")
 recorder_main = _entry("recorder")
+obstacles_main = _entry("obstacles")
 analyze_main = _entry("analyze")
 replay_main = _entry("replay")
 simulate_main = _entry("simulate")

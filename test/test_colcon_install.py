@@ -42,5 +42,7 @@ def test_params_files_and_package_index_are_installed(installed):
     share = installed / "share"
     assert (share / "nmpc_avoid_ros" / "config" / "van_der_pol.yaml").is_file()
     assert (share / "nmpc_avoid_ros" / "config" / "mobile_robot.yaml").is_file()
+    for scene in ("crossing_walker", "head_on", "closing_gap"):
+        assert (share / "nmpc_avoid_ros" / "config" / "scenes" / f"{scene}.yaml").is_file()
     assert (share / "nmpc_avoid_ros" / "package.xml").is_file()
     assert (share / "ament_index" / "resource_index" / "packages" / "nmpc_avoid_ros").is_file()

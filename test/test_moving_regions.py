@@ -84,10 +84,10 @@ def crossing(controller: NmpcController, steps: int = 56) -> float:
     """A walker crosses the straight path of the robot; returns the deepest penetration (g = 1 - r^2)."""
     plant = make_plant("continuous", controller)
     walker = Ellipse((0.0, -4.0), (0.6, 0.6), 0.0, "output", velocity=(0.0, 0.5), stamp=0.0)
-    controller.set_regions([walker])
     x, deepest, ts = np.array([-8.0, 0.0, 0.0, 0.0]), -math.inf, controller.settings.sample_time
     for k in range(steps):
-        result = controller.step(x, [8.0, 0.0], time=k * ts)
+        # the walker as a tracker reports it at each sample: where it is now, and its velocity
+        result = controller.step(x, [8.0, 0.0], [walker.at(k * ts)], time=k * ts)
         x = plant.advance(x, result.u, ts)
         deepest = max(deepest, walker.at((k + 1) * ts).depth(x[:2]))
     return deepest

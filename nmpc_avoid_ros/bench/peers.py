@@ -22,10 +22,10 @@ fallback = True), or zero clipped to the input box without any plan.
 
 from __future__ import annotations
 
-import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from time import perf_counter
 
 import casadi as ca
 import numpy as np
@@ -234,8 +234,10 @@ class OptiIpoptPaper:
         if self.pieces.slot_layout.size:
             self.opti.set_value(self._slots, values)
 
-    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None) -> Sample:
-        """Command for the measured state x [n] and target y_t [p]; see the class docstring."""
+    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None,
+             time: float | None = None) -> Sample:
+        """Command for the measured state x [n] and target y_t [p]; see the class docstring. `time` is
+        accepted for the Stepper protocol: the peers do not predict moving obstacles."""
         x, y_t = np.asarray(x, float).ravel(), np.asarray(y_t, float).ravel()
         if regions is not None:
             self.set_regions(regions)
@@ -250,12 +252,12 @@ class OptiIpoptPaper:
         if x_var is not None:
             opti.set_initial(x_var, xa0)
             opti.set_initial(u_var, ua0)
-        start = time.perf_counter()
+        start = perf_counter()
         try:
             sol = opti.solve()
         except RuntimeError:
             sol = opti.debug
-        solve_time = time.perf_counter() - start
+        solve_time = perf_counter() - start
         stats = opti.stats()
         status = str(stats.get("return_status", "unknown"))
         self.statuses.append(status)
@@ -432,8 +434,10 @@ class DoMpcPeer:
         w[self._iu] = U
         self.mpc.opt_x_num.master = ca.DM(w)
 
-    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None) -> Sample:
-        """Command for the measured state x [n] and target y_t [p]; see the class docstring."""
+    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None,
+             time: float | None = None) -> Sample:
+        """Command for the measured state x [n] and target y_t [p]; see the class docstring. `time` is
+        accepted for the Stepper protocol: the peers do not predict moving obstacles."""
         pc, mpc = self.pieces, self.mpc
         x, y_t = np.asarray(x, float).ravel(), np.asarray(y_t, float).ravel()
         if regions is not None:
@@ -444,9 +448,9 @@ class DoMpcPeer:
         U0, X0, ya0, _, _ = initial_guess(pc, self._plan, x, y_t)
         if self.shifted or self._plan is None:
             self._write_guess(U0, X0, ya0)
-        start = time.perf_counter()
+        start = perf_counter()
         u0 = mpc.make_step(np.concatenate([x, ya0]).reshape(-1, 1))
-        wall = time.perf_counter() - start
+        wall = perf_counter() - start
         stats = mpc.solver_stats
         status = str(stats.get("return_status", "unknown"))
         self.statuses.append(status)

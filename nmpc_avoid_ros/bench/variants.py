@@ -52,7 +52,8 @@ class OursStepper:
     def __init__(self, settings: ControllerSettings, model: Model | None = None) -> None:
         self.controller = NmpcController(settings, model)
 
-    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None) -> Sample:
-        res = self.controller.step(x, y_t, regions)
+    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None,
+             time: float | None = None) -> Sample:
+        res = self.controller.step(x, y_t, regions, time=time)
         return Sample(res.u, res.solve_time, res.iterations, failed=not StepStatus(res.status).is_usable,
                       fallback=res.is_fallback, budget_exhausted=res.budget_exhausted)

@@ -97,8 +97,10 @@ class StepOutcome(Protocol):
 class Stepper(Protocol):
     """A controller in the loop (NmpcController, a benchmark peer): built once, then stepped."""
 
-    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None) -> StepOutcome:
-        """Command for the measured state x [n] and target y_t [p]; regions replace the current set if not None."""
+    def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None,
+             time: float | None = None) -> StepOutcome:
+        """Command for the measured state x [n] at `time` (s) and target y_t [p]; regions replace the
+        current set if not None (moving ones stamped on the same clock as `time`)."""
         ...
 
 
@@ -171,7 +173,7 @@ class ClosedLoop:
         new = self.regions(k) if self.regions else None
         if new is not None:
             self._current = tuple(new)
-        outcome = self.stepper.step(self.x, y_t, new)
+        outcome = self.stepper.step(self.x, y_t, new, time=k * self.sample_time)
         self._solved += 1
         if self.on_step:
             self.on_step(k, outcome)
@@ -273,7 +275,8 @@ def run_closed_loop(
     """`steps` samples of the controller against the named plant ('euler' or 'continuous').
 
     `target` and `regions` may be functions of the step index (a schedule); a regions function
-    returning None keeps the current set. `stop_on`: see ClosedLoop.run.
+    returning None keeps the current set. `stop_on`: see ClosedLoop.run. Sample k happens at time
+    k Ts (s): moving regions are stamped on that clock.
     """
     x = np.asarray(x0, float).ravel()
     if x.size != controller.model.n or not np.all(np.isfinite(x)):

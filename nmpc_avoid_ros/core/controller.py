@@ -198,18 +198,18 @@ class NmpcController:
 
     def set_regions(self, regions: Sequence[Region]) -> None:
         """Replace the obstacle regions (RegionError if they do not fit the slots; nothing changes then)."""
-        slots = self.nlp.slot_layout.pack(list(regions), self.nlp.output_frame_available)
+        slots = self.nlp.slot_layout.pack(list(regions), self.nlp.output_frame_available, predict=False)
         self._regions, self._slots = tuple(regions), slots
         self._moving = any(r.moving for r in self._regions)
 
     def slot_values(self, time: float | None = None) -> np.ndarray:
         """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s).
 
-        Moving regions are placed where they are at `time` and predicted stage by stage when
-        `predict_obstacles` is on (None: each pose counts as valid at x(0)); off, or with only
-        static regions, the slots are the ones packed by `set_regions`.
+        With `predict_obstacles` on, moving regions are placed where they are at `time` and
+        predicted stage by stage (time None: each pose counts as valid at x(0)); off, every region
+        stays where it was at its stamp. Static regions only: the slots packed by `set_regions`.
         """
-        if not (self._moving and self.settings.predict_obstacles and time is not None):
+        if not (self._moving and self.settings.predict_obstacles):
             return self._slots
         return self.nlp.slot_layout.pack(list(self._regions), self.nlp.output_frame_available, time)
 

@@ -1,7 +1,13 @@
-"""`simulate`: the offline closed loop of one configuration, written as JSON.
+"""`simulate`: the offline closed loop of one configuration or scene, written as JSON.
 
     python -m nmpc_avoid_ros simulate --config config/van_der_pol.yaml --steps 50 \
         --x0 -5 0 --target 5 --mu 1e8 --plant euler --json out/run.json
+    python -m nmpc_avoid_ros simulate --scene config/scenes/crossing_walker.yaml \
+        --predict-obstacles off --json out/walker.json
+
+With a scene (core/scene.py: targets over time, moving obstacles) the JSON also holds the pose of
+every obstacle at every sample (`obstacles`) and each obstacle's minimum clearance
+(`min_clearance`, -g with g the region depth, > 0 outside).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from ..core.controller import NmpcController
 from ..core.errors import NmpcError
 from ..core.metrics import max_abs_product, outputs, tracking
 from ..core.models import Model
+from ..core.scene import Scene, load_scene, obstacle_track
 from ..core.settings import SOLVER_PATHS, ControllerSettings, default_config_path, load_params_file
 from ..core.status import StepStatus
 
@@ -34,6 +41,7 @@ class Scenario:
     steps: int
     plant: str
     config_path: Path
+    scene: Scene | None = None
 
 
 def load_scenario(config: str | Path | None, **overrides: Any) -> Scenario:
@@ -62,6 +70,17 @@ def load_scenario(config: str | Path | None, **overrides: Any) -> Scenario:
     )
 
 
+def scene_scenario(scene: Scene, **overrides: Any) -> Scenario:
+    """The scenario of a scene: its config with the scene's controller overrides, then `overrides` (None = keep)."""
+    merged = {**scene.controller, **{k: v for k, v in overrides.items() if v is not None}}
+    run = {"x0": list(scene.x0), "target": list(scene.target_at(0.0)), "steps": scene.steps, "plant": scene.plant}
+    for key in run:
+        merged.setdefault(key, run[key])
+    scenario = load_scenario(scene.config, **merged)
+    scenario.scene = scene
+    return scenario
+
+
 def summarize(run: ClosedLoopRun, target: list[float], model: Model) -> dict[str, Any]:
     """Settling step (|y - y_t| < 0.05 for good), final error, max |x1 x2|, solve times (core/metrics.py)."""
     x = run.x
@@ -82,15 +101,34 @@ def summarize(run: ClosedLoopRun, target: list[float], model: Model) -> dict[str
 
 
 def simulate(scenario: Scenario) -> tuple[ClosedLoopRun, dict[str, Any]]:
-    """Run the scenario's closed loop; returns the run and its summary."""
+    """Run the scenario's closed loop; returns the run and its summary.
+
+    With a scene: its targets and obstacles at each sample time k Ts; run.info gains the obstacle
+    poses per sample and the summary each obstacle's minimum clearance and the deepest penetration.
+    """
     controller = NmpcController(scenario.settings)
-    run = run_closed_loop(controller, scenario.x0, scenario.target, scenario.steps, scenario.plant)
-    return run, summarize(run, scenario.target, controller.model)
+    scene, ts = scenario.scene, scenario.settings.sample_time
+    if scene is None:
+        run = run_closed_loop(controller, scenario.x0, scenario.target, scenario.steps, scenario.plant)
+        return run, summarize(run, scenario.target, controller.model)
+    run = run_closed_loop(controller, scenario.x0, lambda k: scene.target_at(k * ts), scenario.steps, scenario.plant,
+                          lambda k: scene.regions_at(k * ts))
+    summary = summarize(run, list(run.targets[-1]), controller.model)
+    poses, clearance = obstacle_track(scene, run.x, run.u, ts, controller.model, controller.settings)
+    run.info["obstacles"] = poses
+    known = [c for c in clearance.values() if c is not None]
+    summary.update({"min_clearance": clearance, "max_penetration": max(0.0, -min(known)) if known else 0.0,
+                    "predict_obstacles": controller.settings.predict_obstacles})
+    return run, summary
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="simulate", description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", help="ROS 2 params file (default: the shipped config/van_der_pol.yaml)")
+    ap.add_argument("--scene", help="scene YAML (config, x0, steps, plant, targets, moving obstacles); the other "
+                                    "options override it")
+    ap.add_argument("--predict-obstacles", choices=("on", "off"),
+                    help="predict moving obstacles over the horizon (default: the config's, on)")
     ap.add_argument("--steps", type=int, help="number of samples K")
     ap.add_argument("--x0", type=float, nargs="+", help="initial state (n values)")
     ap.add_argument("--target", type=float, nargs="+", help="target output y_t (p values)")
@@ -117,10 +155,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.solver == "list":
         print_solvers()
         return 0
+    predict = None if args.predict_obstacles is None else args.predict_obstacles == "on"
+    overrides = dict(x0=args.x0, target=args.target, steps=args.steps, plant=args.plant, mu=args.mu,
+                     kappa=args.kappa, horizon=args.horizon, solver=args.solver, codegen=args.codegen,
+                     predict_obstacles=predict)
     try:
-        scenario = load_scenario(args.config, x0=args.x0, target=args.target, steps=args.steps, plant=args.plant,
-                                 mu=args.mu, kappa=args.kappa, horizon=args.horizon, solver=args.solver,
-                                 codegen=args.codegen)
+        if args.scene:
+            if args.config or args.target:
+                raise NmpcError("--scene names its config and its targets: drop --config and --target")
+            scenario = scene_scenario(load_scene(args.scene), **overrides)
+        else:
+            scenario = load_scenario(args.config, **overrides)
         run, summary = simulate(scenario)
     except NmpcError as exc:
         print(f"simulate: error: {exc}", file=sys.stderr)
@@ -131,7 +176,10 @@ def main(argv: list[str] | None = None) -> int:
         out["config"] = str(scenario.config_path)
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out))
-    mx = f" max|x1x2|={summary['max_abs_x1x2']:.4f}" if "max_abs_x1x2" in summary else ""
+    mx = f" max|x1x2|={summary['max_abs_x1x2']:.4f}" if "max_abs_x1x2" in summary and not scenario.scene else ""
+    if scenario.scene is not None:
+        clear = ", ".join(f"{k} {'-' if v is None else format(v, '.4f')}" for k, v in summary["min_clearance"].items())
+        mx = f" predict_obstacles={'on' if summary['predict_obstacles'] else 'off'} min clearance: {clear};"
     print(f"simulate: {summary['steps']} steps, plant={scenario.plant}, mu={scenario.settings.mu:g}, "
           f"solver={scenario.settings.solver}: "
           f"settled at step {summary['settling_step']}{mx} final error {summary['final_error']:.2e} "
