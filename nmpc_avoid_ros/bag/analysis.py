@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.metrics import max_abs_product, outputs, penetration, time_stats, tracking
+from ..core.metrics import max_abs_product, outputs, penetration, region_values, time_stats, tracking
 from ..core.models import make_model
 from ..core.regions import Region
 from ..core.settings import ControllerSettings
@@ -70,6 +70,11 @@ def _topic(bag: Bag, suffix: str) -> str | None:
         if name == f"/{suffix}" or name.endswith(f"/{suffix}"):
             return name
     return None
+
+
+def _float_list(text: str) -> list[float]:
+    """A diagnostic's list of floats; Python's repr writes NaN (a sample without a plan) as nan."""
+    return json.loads(text.replace("nan", "NaN").replace("inf", "Infinity"))
 
 
 def load_run(path: str | Path, progress: bool = False, settings: ControllerSettings | None = None) -> RecordedRun:
@@ -129,7 +134,7 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         path=Path(path), finished=bag.finished, t=t,
         x=np.array([json.loads(v["state"]) for _, v in samples]),
         u=np.array([json.loads(v["command"]) for _, v in samples]),
-        y_a=np.array([json.loads(v["y_a"]) for _, v in samples]),
+        y_a=np.array([_float_list(v["y_a"]) for _, v in samples]),
         targets=np.array([v + [math.nan] * (width - len(v)) for v in targets]),
         regions=regions,
         solve_ms=np.array([float(v["solve_time_ms"]) for _, v in samples]),
@@ -156,8 +161,9 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
         metrics.update(tracking(y, target, settings.sample_time))
     # moving regions where they were at each state's time (the final state one sample later)
     pen = penetration(settings, model, xs, run.u, [run.regions_at(k, settings.sample_time) for k in range(len(xs))], y)
-    metrics["max_penetration"] = pen["max_penetration"]
-    metrics["min_clearance"] = pen["min_clearance"]
+    for key in ("max_penetration", "min_clearance", "max_penetration_keep_in", "max_penetration_obstacles",
+                "min_clearance_obstacles"):
+        metrics[key] = pen[key]
     if model.n >= 2:
         metrics["max_abs_x1x2"] = max_abs_product(xs)
     metrics["solve_ms"] = time_stats(run.solve_ms)
@@ -180,15 +186,22 @@ def union_regions(runs: Sequence[RecordedRun]) -> list[Region]:
     return seen
 
 
-def moving_snapshots(run: RecordedRun, count: int = 5, sample_time: float | None = None
+def moving_snapshots(run: RecordedRun, settings: ControllerSettings, count: int = 5
                      ) -> list[tuple[float, np.ndarray, tuple[Region, ...]]]:
-    """(t s since the first sample, state [n], moving regions there) at `count` evenly spread samples."""
+    """(t s since the first sample, state [n], moving regions there) at `count` evenly spread samples
+    and at the closest approach to a moving region (with the samples 4 before and after it)."""
     states = run.states_with_final
-    picks = sorted({int(round(i)) for i in np.linspace(0, len(states) - 1, count)})
+    ts = settings.sample_time
+    moving = [tuple(r for r in run.regions_at(k, ts) if r.moving) for k in range(len(states))]
+    y = outputs(make_model(settings.model), states, run.u)
+    worst = region_values(settings, states, y, moving)
+    picks = {int(round(i)) for i in np.linspace(0, len(states) - 1, count)}
+    if np.any(np.isfinite(worst)):
+        closest = int(np.argmax(worst))
+        picks |= {k for k in (closest - 4, closest, closest + 4) if 0 <= k < len(states)}
     out = []
-    for k in picks:
-        moving = tuple(r for r in run.regions_at(k, sample_time) if r.moving)
-        if moving:
-            t = run.t[k] if k < len(run.t) else run.t[-1] + (sample_time or run.sample_time)
-            out.append((float(t), states[k], moving))
+    for k in sorted(picks):
+        if moving[k]:
+            t = run.t[k] if k < len(run.t) else run.t[-1] + ts
+            out.append((float(t), states[k], moving[k]))
     return out

@@ -111,8 +111,9 @@ def penetration(settings: ControllerSettings, model: Model, x: np.ndarray, u: np
                 regions: Sequence[Sequence[Region]], y: np.ndarray | None = None) -> dict[str, Any]:
     """Penetration of the keep-in set and of the regions, and the clearance, over x [K+1, n].
 
-    Returns max_penetration (both), max_penetration_keep_in, max_penetration_obstacles (>= 0) and
-    min_clearance (-max g over both, None if there is neither a keep-in expression nor a region).
+    Returns max_penetration (both), max_penetration_keep_in, max_penetration_obstacles (>= 0),
+    min_clearance (-max g over both, None if there is neither a keep-in expression nor a region)
+    and min_clearance_obstacles (-max g over the regions alone, None without regions).
     """
     y = outputs(model, x, u) if y is None else y
     keep = keep_in_values(settings, model, x, u)
@@ -121,7 +122,8 @@ def penetration(settings: ControllerSettings, model: Model, x: np.ndarray, u: np
     worst = max(keep_worst, region_worst)
     return {"max_penetration": max(0.0, worst), "max_penetration_keep_in": max(0.0, keep_worst),
             "max_penetration_obstacles": max(0.0, region_worst),
-            "min_clearance": -worst if math.isfinite(worst) else None}
+            "min_clearance": -worst if math.isfinite(worst) else None,
+            "min_clearance_obstacles": -region_worst if math.isfinite(region_worst) else None}
 
 
 def time_stats(values: np.ndarray, percentiles: Sequence[int] = (99,)) -> dict[str, float]:

@@ -46,7 +46,7 @@ def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: lis
     for label, run in runs:
         t = run.t if run.final_state is None else np.append(run.t, run.t[-1] + settings.sample_time)
         traces.append(Trace(label, t, run.states_with_final, run.u, run.y_a, union_regions([run]),
-                            moving_snapshots(run, sample_time=settings.sample_time)))
+                            moving_snapshots(run, settings)))
     paper_region = model.name == "van_der_pol" and any("x1*x2" in k.replace(" ", "") for k in settings.keep_in)
     target = runs[0][1].targets[-1].tolist()
     lo, hi = settings.state_min, settings.state_max

@@ -1,0 +1,145 @@
+"""`demo --scene FILE`: a scene through ROS 2 between separate processes -> DIR.
+
+    python -m nmpc_avoid_ros demo --scene config/scenes/crossing_walker.yaml --out out/walker \
+        [--predict-obstacles on|off] [--obstacle-rate 10] [--estimate-velocity]
+
+Writes DIR/params.yaml (the scene's config with its controller overrides and predict_obstacles:
+the one file every node and the analysis read), starts the recorder, the controller, the
+`obstacles` node (the scene's obstacles as stamped markers) and then the plant (real time, the
+continuous plant: a real-time plant integrates, so a scene's `plant: euler` runs as continuous),
+publishes the scene's targets at their times, stops after the scene's steps and analyses the bag
+(DIR/scene.mcap) into DIR/metrics.json, phase_portrait.png (the obstacles at a few sample times)
+and time_series.png. Scene time 0 is the plant's first state.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import yaml
+
+from ..core.errors import NmpcError
+from ..core.scene import Scene, load_scene
+from ..core.settings import load_params_file
+from .analyze import analyze
+from .processes import NodeProcess
+
+#: the recorder subscribes to these at once (before their publishers appear), so no sample is missed
+RECORDED_TYPES = ["state=std_msgs/msg/Float64MultiArray", "command=std_msgs/msg/Float64MultiArray",
+                  "target=std_msgs/msg/Float64MultiArray", "obstacles=visualization_msgs/msg/MarkerArray",
+                  "/diagnostics=diagnostic_msgs/msg/DiagnosticArray", "controller/prediction=nav_msgs/msg/Path"]
+
+
+def scene_params(scene: Scene, predict: bool | None, out: Path) -> Path:
+    """DIR/params.yaml: the scene's config, its controller overrides, predict_obstacles and the plant's x0."""
+    params = load_params_file(scene.config)
+    controller = {**params.section("controller"), **scene.controller}
+    if predict is not None:
+        controller["predict_obstacles"] = predict
+    plant = {**params.section("plant"), "initial_state": [float(v) for v in scene.x0], "integration": "continuous"}
+    plant.pop("lockstep", None)
+    data = {name: {"ros__parameters": params.section(name)} for name in params.nodes}
+    data["controller"] = {"ros__parameters": controller}
+    data["plant"] = {"ros__parameters": plant}
+    path = out / "params.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, timeout: float = 300.0,
+                   rate: float = 10.0, explicit_velocity: bool = True) -> dict:
+    """Run the scene through DDS; returns the analysis report (metrics of the bag) with the scene's name."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import Float64MultiArray
+    from visualization_msgs.msg import MarkerArray
+
+    from ..ros.parameters import LATCHED_QOS, STREAM_QOS
+
+    scene = load_scene(scene_path)
+    out.mkdir(parents=True, exist_ok=True)
+    params = scene_params(scene, predict, out)
+    bag = (out / "scene.mcap").resolve()
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("ROS_LOG_DIR", str((out / "ros_logs").resolve()))
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR")})
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("scene_demo", context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    samples: list[dict[str, str]] = []
+    heard = {"obstacles": 0, "state": 0}
+    first_state: list[float] = []
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if "solve_time_ms" in values:
+                samples.append(values)
+
+    def on_state(_msg: Float64MultiArray) -> None:
+        heard["state"] += 1
+        if not first_state:
+            first_state.append(time.monotonic())
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, STREAM_QOS)
+    node.create_subscription(Float64MultiArray, "state", on_state, STREAM_QOS)
+    def on_obstacles(_msg: MarkerArray) -> None:
+        heard["obstacles"] += 1
+
+    node.create_subscription(MarkerArray, "obstacles", on_obstacles, LATCHED_QOS)
+    target_pub = node.create_publisher(Float64MultiArray, "target", LATCHED_QOS)
+    logs = out / "logs"
+    ros_args = ["--ros-args", "--params-file", str(params)]
+    recorder = NodeProcess("recorder", ["--ros-args", "-p", f"output:={bag}", "-p", "overwrite:=true", "-p",
+                                        f"types:={json.dumps(RECORDED_TYPES)}"], env, logs)
+    procs = [recorder, NodeProcess("controller", ros_args, env, logs),
+             NodeProcess("obstacles", ["--ros-args", "-p", f"scene:={Path(scene_path).resolve()}", "-p",
+                                       f"rate:={float(rate)}", "-p",
+                                       f"explicit_velocity:={str(explicit_velocity).lower()}"], env, logs)]
+    pending = list(scene.targets)
+    try:
+        target_pub.publish(Float64MultiArray(data=list(pending.pop(0)[1])))
+        deadline = time.monotonic() + timeout
+
+        def ready() -> bool:
+            return (node.count_publishers("/diagnostics") >= 1 and node.count_subscribers("/diagnostics") >= 2
+                    and node.count_subscribers("command") >= 1 and node.count_subscribers("state") >= 3
+                    and heard["obstacles"] > 0)
+
+        while time.monotonic() < deadline and not ready():
+            executor.spin_once(timeout_sec=0.05)
+            _check_alive(procs)
+        procs.append(NodeProcess("plant", ros_args, env, logs))
+        while len(samples) < scene.steps and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+            _check_alive(procs)
+            while pending and first_state and time.monotonic() - first_state[0] >= pending[0][0]:
+                target_pub.publish(Float64MultiArray(data=list(pending.pop(0)[1])))
+        if len(samples) < scene.steps:
+            raise NmpcError(f"the scene did not complete {scene.steps} samples in {timeout:.0f} s "
+                            f"({heard['state']} states, {len(samples)} samples)")
+    finally:
+        codes = [p.stop() for p in reversed(procs)]  # plant first; the recorder finishes the bag last
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    if any(codes):
+        names = [p.command for p in reversed(procs)]
+        raise NmpcError(f"a node did not exit cleanly: exit codes {dict(zip(names, codes))}")
+    label = f"{Path(scene_path).stem} (prediction {'off' if predict is False else 'on'})"
+    report = analyze([bag], out, params, labels=[label])
+    report["scene"] = str(scene_path)
+    (out / "metrics.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def _check_alive(procs: list[NodeProcess]) -> None:
+    for p in procs:
+        if not p.alive():
+            raise NmpcError(f"{p.command} exited early:\n{p.output()[-2000:]}")
