@@ -73,7 +73,9 @@ class EscapeGuesses:
         y = ca.SX.sym("y", model.p)
         par = ca.SX.sym("p", nlp.region_depth.size1_in(2))
         x_s, u_s = (ca.vertcat(v) for v in model.steady_state(y))
-        point = ca.Function("steady_point", [y, par], [x_s, u_s, nlp.region_depth(x_s, u_s, par)])
+        # a steady state is where the plan ends (x(N) = x_a): moving obstacles as at t_N
+        point = ca.Function("steady_point", [y, par], [x_s, u_s, nlp.region_depth(x_s, u_s, par,
+                                                                                  self.horizon * settings.sample_time)])
         Y = ca.SX.sym("Y", model.p, SEGMENT_POINTS)
         outs = point.map(SEGMENT_POINTS)(Y, ca.repmat(par, 1, SEGMENT_POINTS))
         self._segment = Buffered(ca.Function("steady_segment", [Y, par], list(outs)))
@@ -145,7 +147,7 @@ class EscapeGuesses:
         else:
             plane = list(self.settings.output_plane)
             u_now = np.zeros(self.model.m)
-            start, end = self._output(x, u_now)[plane].copy(), y_new[plane] if y_new.size > max(plane) else None
+            start, end = self._output(x, u_now)[0][plane].copy(), y_new[plane] if y_new.size > max(plane) else None
             if end is None:
                 return []
         direction = end - start

@@ -74,7 +74,7 @@ class FallbackSelector:
             x = f(x, U[:, k])
             states.append(x)
             u_next = U[:, min(k + 1, H - 1)]
-            terms = [depth(x, u_next, par), x - x_hi, x_lo - x]
+            terms = [depth(x, u_next, par, (k + 1) * settings.sample_time), x - x_hi, x_lo - x]
             if parts.n_hard:
                 terms.append(parts.hard_g(x, u_next))
             excess.append(ca.vertcat(*terms))

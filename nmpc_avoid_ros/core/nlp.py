@@ -163,9 +163,10 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
 
 
 def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
-    """(x [n], u [m], p [n_param]) -> region functions g [n_depth] (> 0 inside a region to avoid)."""
-    xs, us = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
-    return ca.Function("region_depth", [xs, us, parts.par], [parts.avoidance(xs, us)])
+    """(x [n], u [m], p [n_param], elapsed s) -> region functions g [n_depth] (> 0 inside a region to
+    avoid), moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts; steady state: N Ts)."""
+    xs, us, elapsed = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m), ca.SX.sym("elapsed")
+    return ca.Function("region_depth", [xs, us, parts.par, elapsed], [parts.avoidance(xs, us, elapsed)])
 
 
 class Buffered:
@@ -273,7 +274,7 @@ class NlpBase:
             raise ConfigError(f"unexpected solver signature {solver.name_in()} -> {solver.name_out()}")
         return Buffered(solver, fixed={2: self.lbx, 3: self.ubx, 4: self.lbg, 5: self.ubg}, densify=False)
 
-    #: (x [n], u [m], p) -> region functions g [n_depth], set by the subclass's build
+    #: (x [n], u [m], p, elapsed s) -> region functions g [n_depth], set by the subclass's build
     region_depth: ca.Function
 
     def max_depth(self, w: np.ndarray, par: np.ndarray) -> float:

@@ -97,8 +97,9 @@ def main(argv: list[str] | None = None) -> int:
         groups = [make_specs(fam, counts[key], args.seed, base[key], args.plant) for key, fam in fams.items()]
         sweep = parse_sweep(args.sweep, base) if args.sweep else None
         meta = {"seed": args.seed, "plant": args.plant, "max_solve_time": args.max_solve_time,
-                "configs": {f.key: str(f.config) for f in fams.values()},
-                "steps": {f.key: f.steps for f in fams.values()}}
+                # an opt-in family (default count 0) only when asked for: older campaigns' meta stays as it was
+                "configs": {f.key: str(f.config) for f in fams.values() if counts[f.key] or f.default_count},
+                "steps": {f.key: f.steps for f in fams.values() if counts[f.key] or f.default_count}}
         runs = ([(args.out, {}, meta)] if sweep is None else
                 [(sweep_dir(args.out, sweep.name, v), {sweep.name: v}, {**meta, "sweep": {sweep.name: v}})
                  for v in sweep.values])

@@ -25,6 +25,10 @@ def _max(values: Sequence[float]) -> float | None:
     return float(max(values)) if values else None
 
 
+def _min(values: Sequence[float]) -> float | None:
+    return float(min(values)) if values else None
+
+
 def _stats(values: Sequence[float]) -> dict[str, float | None]:
     if not values:
         return {"median": None, "max": None}
@@ -69,6 +73,12 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "max_penetration_keep_in": float(max(r["max_penetration_keep_in"] for r in finished)),
         "max_penetration_obstacles": float(max(r["max_penetration_obstacles"] for r in finished)),
         "max_penetration_scope": "runs that did not stop early",
+        "runs_with_obstacle_penetration_over_1e-3": sum(r["max_penetration_obstacles"] > 1e-3 for r in records),
+        "collision_rate": _share([r["max_penetration_obstacles"] > 1e-3 for r in records]),
+        "min_clearance_obstacles": _min([r["min_clearance_obstacles"] for r in finished
+                                         if r.get("min_clearance_obstacles") is not None]),
+        "min_clearance_obstacles_median": _stats([r["min_clearance_obstacles"] for r in finished
+                                                  if r.get("min_clearance_obstacles") is not None])["median"],
         "runs_with_penetration_over_1e-3": sum(r["max_penetration"] > 1e-3 for r in records),
         "samples": sum(r["samples"] for r in records),
         "solver_failures": sum(r["solver_failures"] for r in records),
@@ -128,7 +138,10 @@ DEFINITIONS = {
     "stop_short": "at rest but not converged; distance |y_K - y*|; cause obstacle_covers_target (stopped at y~ != y*), "
                   "no_passage (no admissible way to y~ exists) or local_minimum (one exists)",
     "penetration": "max over sampled states of g (keep-in: expression value, e.g. |x1 x2|-2; ellipse: 1 - r^2), 0 "
-                   "if never inside",
+                   "if never inside; a moving ellipse is taken where it is at each sample's time",
+    "collision_rate": "share of runs whose penetration into an obstacle (keep-in expressions left out) exceeds 1e-3",
+    "min_clearance_obstacles": "min over runs (not stopped early) of -max g over the obstacles alone; "
+                               "_median: the median over runs",
     "solver_failure": "sample whose IPOPT status is not Solve_Succeeded / Solved_To_Acceptable_Level",
     "stopped_early": "the closed loop ended before its last sample (e.g. the plant state became non-finite); such "
                      "runs count as not converged and are left out of max_penetration",

@@ -21,7 +21,9 @@ from ...core.settings import RUNTIME_FIELDS, ControllerSettings
 
 #: summary keys compared across the values (table rows and figure panels)
 SWEEP_KEYS = ("share_converged", "share_near", "share_near_admissible", "stop_short", "max_penetration",
-              "runs_with_penetration_over_1e-3", "penetration_after_first_step", "fallback_penetration",
+              "runs_with_penetration_over_1e-3", "collision_rate", "runs_with_obstacle_penetration_over_1e-3",
+              "max_penetration_obstacles", "min_clearance_obstacles", "min_clearance_obstacles_median",
+              "penetration_after_first_step", "fallback_penetration",
               "fallbacks", "solver_failures", "recursive_feasibility_rate",
               "solve_ms_median_of_medians", "solve_ms_max")
 
