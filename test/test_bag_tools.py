@@ -50,10 +50,11 @@ def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo
         "/state": "std_msgs/msg/Float64MultiArray", "/command": "std_msgs/msg/Float64MultiArray",
         "/target": "std_msgs/msg/Float64MultiArray", "/obstacles": "visualization_msgs/msg/MarkerArray",
         "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray", "/controller/prediction": "nav_msgs/msg/Path",
-        "/clock": "rosgraph_msgs/msg/Clock"}
+        "/controller/certificate": "std_msgs/msg/Float64MultiArray", "/clock": "rosgraph_msgs/msg/Clock"}
     assert counts["/target"] == 1 and counts["/obstacles"] == 1
     # lockstep: one command, one prediction, one diagnostic per state answered, one clock tick per state
-    assert counts["/command"] == counts["/controller/prediction"] == counts["/diagnostics"]
+    assert counts["/command"] == counts["/controller/prediction"] == counts["/diagnostics"] == \
+        counts["/controller/certificate"]
     assert counts["/state"] >= 51 and counts["/clock"] == counts["/state"]
     # at shutdown (plant stopped first) the last state can reach the controller but not the
     # recorder, or the last command the recorder but no plant: the counts differ by at most one
@@ -77,7 +78,23 @@ def test_analyze_of_the_paper_bags_matches_simulate(demo_out, paper, tmp_path):
         assert m["fallbacks"] == 0 and m["finished"] is True
     assert metrics["with_avoidance.mcap"]["max_penetration"] < 1e-3
     assert metrics["without_avoidance.mcap"]["max_penetration"] > 7
+    for name in RUNS:
+        m = metrics[f"{name}.mcap"]
+        assert m["certificate_violations"] == 0 and m["certificate_checked"] >= 49
     assert (tmp_path / "phase_portrait.png").stat().st_size > 10_000
+    assert (tmp_path / "value_function.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("name", RUNS)
+def test_lockstep_certificate_is_the_offline_loops(demo_out, name, paper):
+    """The node's per-sample certificate (diagnostics) equals the offline loop's, with no violation."""
+    run = load_run(demo_out / f"{name}.mcap")
+    offline = paper(RUNS[name], "euler").certificate
+    assert run.counters["certificate_violations"] == 0
+    values = run.certificate["value_function"][:50]
+    np.testing.assert_allclose(values, [c["value_function"] for c in offline], rtol=1e-12)
+    bounds = run.certificate["decrease_bound"][1:50]
+    np.testing.assert_allclose(bounds, [c["decrease_bound"] for c in offline[1:]], rtol=1e-9, atol=1e-9)
 
 
 def test_replay_resolve_reproduces_the_recorded_commands_and_reports_a_new_tuning(demo_out, tmp_path):

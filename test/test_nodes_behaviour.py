@@ -204,6 +204,34 @@ def test_param_set_of_mu_and_kappa_takes_effect_at_the_next_sample_and_bad_value
     assert diag["mu"] == "0" and diag["kappa"] == "10000"
 
 
+def test_certificate_violations_warn_with_the_margin_then_error_and_go_on_the_certificate_topic(ros_graph):
+    """A plant that is pushed away from y_t every sample breaks the nominal decrease again and again."""
+    p, listen, ctrl = controller_with_probe(ros_graph, 5.0, "-p", "lockstep:=true", "-p", "mu:=0.0")
+    certificates: list[Float64MultiArray] = []
+    p.node.create_subscription(Float64MultiArray, "controller/certificate", certificates.append, STREAM_QOS)
+    plant = DiscretePlant(make_model("van_der_pol"), 0.5)
+    x = [4.0, 0.0]
+    diags = []
+    for _ in range(8):
+        u, diag = lockstep_command(listen, x)
+        diags.append(diag)
+        x = (plant.advance(np.array(x), np.array(u), 0.5) - [0.6, 0.0]).tolist()
+    violated = [d for d in diags if d["certificate"].startswith("violated")]
+    assert violated, [d["certificate"] for d in diags]
+    first = violated[0]
+    assert first["level"] == 1 and "certificate violated by" in first["message"]
+    assert float(first["certificate_margin"]) < 0
+    assert float(first["decrease"]) > float(first["decrease_bound"])
+    assert any(d["level"] == 2 for d in diags)  # three in a row: ERROR
+    assert int(diags[-1]["certificate_violations"]) == len(violated)
+    assert listen.spin_until(lambda: len(certificates) >= 8, 5)
+    layout = certificates[-1].layout.dim[0].label.split(",")
+    last = dict(zip(layout, certificates[-1].data))
+    assert last["certificate_violations"] == len(violated) and last["value_function"] == \
+        float(diags[-1]["value_function"])
+    assert ctrl.stop() == 0
+
+
 def test_stale_state_triggers_the_safe_behaviour_and_an_error_then_control_resumes(ros_graph):
     p, listen, ctrl = controller_with_probe(ros_graph, 1.0, "-p", "state_timeout:=0.6", "-p", "sample_time:=0.2")
 

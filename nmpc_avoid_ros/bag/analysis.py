@@ -49,6 +49,9 @@ class RecordedRun:
     final_state: np.ndarray | None = None
     sample_time: float = math.nan
     times: np.ndarray | None = None
+    #: the controller's stability certificate per sample (CERTIFICATE_KEYS -> [K], nan where the
+    #: diagnostics lack it) and `violated` [K] bool; empty for bags of controllers without it
+    certificate: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -62,6 +65,18 @@ class RecordedRun:
         ts = self.sample_time if sample_time is None else sample_time
         t = self.times[k] if k < len(self.times) else self.times[-1] + (k - len(self.times) + 1) * ts
         return tuple(r.at(t) if r.moving else r for r in regions)
+
+
+#: diagnostic keys of the certificate (nodes/controller.py)
+CERTIFICATE_KEYS = ("value_function", "decrease", "decrease_bound", "certificate_margin")
+
+
+def _certificate(samples: list[dict[str, str]]) -> dict[str, np.ndarray]:
+    if not any("value_function" in v for v in samples):
+        return {}
+    out = {key: np.array([float(v.get(key, "nan")) for v in samples]) for key in CERTIFICATE_KEYS}
+    out["violated"] = np.array([v.get("certificate", "").startswith("violated") for v in samples])
+    return out
 
 
 def _topic(bag: Bag, suffix: str) -> str | None:
@@ -140,11 +155,12 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         solve_ms=np.array([float(v["solve_time_ms"]) for _, v in samples]),
         status=[v["status"] for _, v in samples],
         counters={k: int(samples[-1][1][k]) for k in ("fallbacks", "rejected_inputs", "deadline_overruns", "stale",
-                                                       "samples") if k in samples[-1][1]},
+                                                       "samples", "certificate_violations") if k in samples[-1][1]},
         final_state=final_state,
         sample_time=float(np.median(np.diff(t))) if len(t) > 1 else math.nan,
         # the controller's own time of each state; older bags: the diagnostic's log time
         times=np.array([float(v["state_time"]) if "state_time" in v else stamp * 1e-9 for stamp, v in samples]),
+        certificate=_certificate([v for _, v in samples]),
     )
 
 
@@ -171,6 +187,10 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
     metrics["fallbacks"] = sum(s.startswith("fallback") for s in run.status)
     metrics["rejected_inputs"] = run.counters.get("rejected_inputs", 0)
     metrics["stale_samples"] = run.counters.get("stale", 0)
+    cert = run.certificate
+    # None: the bag's controller did not report the certificate
+    metrics["certificate_violations"] = int(np.sum(cert["violated"])) if cert else None
+    metrics["certificate_checked"] = int(np.sum(np.isfinite(cert["decrease"]))) if cert else None
     return metrics
 
 

@@ -137,3 +137,25 @@ def time_series(traces: Sequence[Trace], path: Path, *, state_names: Sequence[st
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def value_function_plot(series: Sequence[tuple[str, np.ndarray, np.ndarray, np.ndarray]], path: Path,
+                        title: str = "Value function V_N and certificate") -> Path:
+    """V_N per sample (log scale) per run: (label, sample k [K], V_N [K], violated [K] bool); violations marked x."""
+    fig, ax = plt.subplots(figsize=(7.5, 3.2), dpi=130)
+    for i, (label, t, values, violated) in enumerate(series):
+        color = COLORS[i % len(COLORS)]
+        shown = np.where(values > 0, values, np.nan)  # log scale: V_N = 0 exactly at a steady state
+        ax.semilogy(t, shown, "-", lw=1.4, color=color, label=f"{label} ({int(np.sum(violated))} violations)")
+        if np.any(violated):
+            ax.semilogy(t[violated], shown[violated], "x", ms=8, mew=2, color="tab:red")
+    ax.set_xlabel("sample k")
+    ax.set_ylabel("V_N")
+    ax.set_title(title)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

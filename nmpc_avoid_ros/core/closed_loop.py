@@ -20,6 +20,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from .certificate import StabilityCertificate
 from .controller import NmpcController, StepResult
 from .errors import ConfigError
 from .metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
@@ -232,6 +233,7 @@ class ClosedLoopRun:
     escapes: list[str] = field(default_factory=list)  # [K] StepResult.escape ('' where none was tried)
     # [K] StepResult.predicted_violation: of the applied fallback or bounded-violation input, else NaN
     predicted_violations: list[float] = field(default_factory=list)
+    certificate: list[dict] = field(default_factory=list)  # [K] CertificateSample.as_dict() per sample
 
     @classmethod
     def from_trajectory(cls, run: Trajectory, info: dict | None = None) -> ClosedLoopRun:
@@ -259,6 +261,7 @@ class ClosedLoopRun:
                      "tracking": self.costs[:, 2].tolist()},
             "sample_time": self.sample_time,
             "info": self.info,
+            "certificate": self.certificate,
         }
 
 
@@ -277,11 +280,23 @@ def run_closed_loop(
     `target` and `regions` may be functions of the step index (a schedule); a regions function
     returning None keeps the current set. `stop_on`: see ClosedLoop.run. Sample k happens at time
     k Ts (s): moving regions are stamped on that clock.
+    Every sample is scored by the stability certificate (core/certificate.py) right after its
+    step: `ClosedLoopRun.certificate`.
     """
     x = np.asarray(x0, float).ravel()
     if x.size != controller.model.n or not np.all(np.isfinite(x)):
         raise ConfigError(f"x0 must be {controller.model.n} finite numbers, got {list(x0)}")
     sim = make_plant(plant, controller.model, controller.settings)
-    loop = ClosedLoop(controller, sim, x, target, controller.settings.sample_time, regions, on_step)
-    return ClosedLoopRun.from_trajectory(loop.run(steps, stop_on),
-                                         {"plant": plant, "nlp_builds": controller.nlp_builds})
+    certificate, certified = StabilityCertificate(controller), []
+
+    def observe(k: int, result: StepResult) -> None:
+        y_t = np.asarray(target(k) if callable(target) else target, float)
+        certified.append(certificate.observe(result, y_t).as_dict())
+        if on_step:
+            on_step(k, result)
+
+    loop = ClosedLoop(controller, sim, x, target, controller.settings.sample_time, regions, observe)
+    run = ClosedLoopRun.from_trajectory(loop.run(steps, stop_on),
+                                        {"plant": plant, "nlp_builds": controller.nlp_builds})
+    run.certificate = certified[:len(run.u)]
+    return run

@@ -111,6 +111,12 @@ class ControllerSettings:
     max_obstacle_stamp_skew: float = setting(2.0, "a moving obstacle whose header.stamp lies further than this (s) "
                                                   "from its receipt is refused (given velocity) or its estimate reset",
                                              runtime=True, low=0.0, low_open=True)
+    certificate_tolerance: float = setting(
+        100.0, "stability certificate: a decrease above the bound by more than this x tolerance x max(1, |V_N|) "
+               "is a violation (docs/certificate.md)", runtime=True, low=0.0)
+    certificate_error_after: int = setting(
+        3, "stability certificate: this many violations in a row are an ERROR (one alone is a WARN)",
+        runtime=True, low=1, high=1000000)
 
     def __post_init__(self) -> None:
         normalise(self)

@@ -29,6 +29,14 @@ one that ended); with a solve also `status`, `solver_status`, `iterations`, `sol
 when that state arrived: moving obstacles are predicted from it). Obstacles: `moving_regions`,
 `obstacle_resets` (velocity estimates reset) and `last_obstacle_issue` (the latest refusal or
 reset of a marker, with its reason).
+
+Stability certificate (core/certificate.py, docs/certificate.md): every sample checks the decrease
+of the value function; diagnostics carry `value_function`, `decrease`, `decrease_bound`,
+`certificate_margin`, `certificate` (checked, or why not, and what V_N is the cost of) and the
+counter `certificate_violations`. A violation is WARN with its margin, `certificate_error_after` in a
+row ERROR.
+`~/certificate` (std_msgs/Float64MultiArray) carries the same per sample, in the order of
+core.certificate.LAYOUT (named in `layout.dim[0].label`).
 """
 
 from __future__ import annotations
@@ -44,9 +52,10 @@ from nav_msgs.msg import Path
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import MarkerArray
 
+from ..core.certificate import LAYOUT, CertificateSample, StabilityCertificate
 from ..core.controller import NmpcController, StepResult
 from ..core.errors import ConfigError, InputError, NmpcError
 from ..core.settings import NODE_SETTINGS, SETTINGS, NodeSettings
@@ -136,9 +145,11 @@ class ControllerNode(LifecycleNode):
         if self.options.target is not None:
             self.target = np.asarray(finite_vector(self.options.target, self.p, "target"))
         self.safe_input = self._safe_input(self.options)
-        self.controller.set_safe_input(self.safe_input)  # also a fallback candidate
+        controller.set_safe_input(self.safe_input)  # also a fallback candidate
         self.lockstep = self.options.lockstep  # read-only: fixed for the node's life
         self.controller = controller
+        self.certificate = StabilityCertificate(controller)
+        self.last_certificate: CertificateSample | None = None
         self.reset_loop()
         self.last_result: StepResult | None = None
         self.last_command = np.zeros(self.m)
@@ -152,6 +163,8 @@ class ControllerNode(LifecycleNode):
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.latched_inputs = [LatchedSubscription(self, Float64MultiArray, "target", self.on_target),
                                LatchedSubscription(self, MarkerArray, "obstacles", self.on_obstacles)]
+        self.pub_certificate = self.create_publisher(Float64MultiArray, "~/certificate", STREAM_QOS)
+        self.certificate_layout = [MultiArrayDimension(label=",".join(LAYOUT), size=len(LAYOUT), stride=len(LAYOUT))]
         self.get_logger().info(
             f"controller ready: model={s.model} N={s.horizon} Ts={s.sample_time}s {s.discretization} "
             f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
@@ -169,6 +182,7 @@ class ControllerNode(LifecycleNode):
         self.stale_since: float | None = None  # node-clock time the current stale episode began
         self.state_age = math.nan  # s, age of the state at the start of the last sample
         self.started = self.now()
+        self.certificate.reset()  # the next sample's predecessor is not the last one solved
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start the state subscription and the samples (timer, or each state in lockstep)."""
@@ -215,7 +229,7 @@ class ControllerNode(LifecycleNode):
             return
         for latched in self.latched_inputs:
             latched.destroy()
-        for publisher in (self.pub_command, self.pub_prediction, self.pub_diagnostics):
+        for publisher in (self.pub_command, self.pub_prediction, self.pub_diagnostics, self.pub_certificate):
             self.destroy_publisher(publisher)
         self.latched_inputs = []
         self.controller = None
@@ -340,6 +354,7 @@ class ControllerNode(LifecycleNode):
             # for now (measured in a 1 s blackout on the boundary: max |x1 x2| 2.08 -> 1.85)
             self.counts["missed_samples"] += 1
             result = self.controller.coast()
+            self.publish_certificate(self.certificate.skip("no new state"))
             if result is not None:
                 self.last_result = result
                 self.send_command(result.u)
@@ -374,6 +389,14 @@ class ControllerNode(LifecycleNode):
             level = DiagnosticStatus.ERROR
             message = f"{result.status}: {result.fallback_reason}"
             self.get_logger().error(message, throttle_duration_sec=self.options.log_throttle)
+        certificate = self.certificate.observe(result, self.target)
+        self.publish_certificate(certificate)
+        if certificate.violated:
+            note = f"certificate violated by {-certificate.margin:.3g} ({certificate.consecutive} in a row)"
+            message = f"{message}; {note}"
+            if level != DiagnosticStatus.ERROR:
+                level = DiagnosticStatus.ERROR if certificate.level == "error" else DiagnosticStatus.WARN
+            self.get_logger().warning(f"{result.status}; {note}", throttle_duration_sec=self.options.log_throttle)
         self.publish_diagnostics(level, message, result, latency)
 
     def safe_command(self, behavior: str) -> np.ndarray:
@@ -395,6 +418,7 @@ class ControllerNode(LifecycleNode):
         behavior = self.options.stale_behavior
         self.send_command(self.safe_command(behavior))
         self.counts["stale"] += 1
+        self.publish_certificate(self.certificate.skip(why))
         self.publish_diagnostics(DiagnosticStatus.ERROR, f"{why}: applying {behavior}", None, 0.0)
         self.get_logger().error(f"{why}: applying {behavior} {self.last_command.tolist()}",
                                 throttle_duration_sec=self.options.log_throttle)
@@ -411,6 +435,12 @@ class ControllerNode(LifecycleNode):
             pose.pose.orientation.w = 1.0
             path.poses.append(pose)
         self.pub_prediction.publish(path)
+
+    def publish_certificate(self, sample: CertificateSample) -> None:
+        self.last_certificate = sample
+        msg = Float64MultiArray(data=sample.as_vector())
+        msg.layout.dim = self.certificate_layout
+        self.pub_certificate.publish(msg)
 
     def publish_diagnostics(self, level: bytes, message: str, result: StepResult | None, latency: float) -> None:
         s = self.controller.settings
@@ -433,6 +463,13 @@ class ControllerNode(LifecycleNode):
                 "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
                 "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
             })
+        cert = self.last_certificate
+        if cert is not None:
+            values.update({"value_function": repr(cert.value_function), "decrease": repr(cert.decrease),
+                           "decrease_bound": repr(cert.decrease_bound), "certificate_margin": repr(cert.margin),
+                           "certificate_violations": str(cert.violations),
+                           "certificate": (("violated" if cert.violated else "checked") if cert.checked
+                                           else f"not checked: {cert.reason}") + f"; V_N of the {cert.cost_source}"})
         status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: nmpc",
                                   message=message, hardware_id=self.get_fully_qualified_name())
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]

@@ -36,7 +36,8 @@ from ..core.errors import ConfigError
 from ..ros.parameters import ParamSpec, declare
 from .runner import run_node
 
-DEFAULT_TOPICS = ["state", "command", "target", "obstacles", "/diagnostics", "controller/prediction", "/clock"]
+DEFAULT_TOPICS = ["state", "command", "target", "obstacles", "/diagnostics", "controller/prediction",
+                  "controller/certificate", "/clock"]
 #: messages taken per callback beyond the one the executor delivers (fairness between topics)
 BATCH = 200
 #: topics never recorded by `topics: ["*"]`

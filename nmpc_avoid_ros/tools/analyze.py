@@ -4,9 +4,10 @@
 
 Per bag: settling step and time, overshoot, final error, maximum penetration into any avoided
 region and minimum clearance (moving regions where they were at each sample's time), solve-time
-median/p99/max, deadline overruns, fallbacks, rejected inputs, and whether the file was
-finished. Several bags are overlaid in the figures; the phase portrait draws moving obstacles at
-a few sample times beside the state of that time.
+median/p99/max, deadline overruns, fallbacks, rejected inputs, whether the file was finished,
+and the stability certificate's violations (V_N per sample in value_function.png;
+docs/certificate.md). Several bags are overlaid in the figures; the phase portrait draws moving
+obstacles at a few sample times beside the state of that time.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bag.analysis import load_run, moving_snapshots, run_metrics, union_regions
-from ..bag.figures import Trace, phase_portrait, time_series
+from ..bag.figures import Trace, phase_portrait, time_series, value_function_plot
 from ..bag.mcap_io import BagError
 from ..core.errors import NmpcError
 from ..core.models import make_model
@@ -56,6 +57,10 @@ def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: lis
                    title=f"Phase portrait from {len(bags)} bag(s)")
     time_series(traces, out / "time_series.png", state_names=model.state_names, input_names=model.input_names,
                 target=target, title="States, input and y_a from the bag(s)")
+    certified = [(label, np.arange(len(run.x)), run.certificate["value_function"], run.certificate["violated"])
+                 for label, run in runs if run.certificate]
+    if certified:
+        value_function_plot(certified, out / "value_function.png")
     report = {"config": str(config), "bags": results}
     (out / "metrics.json").write_text(json.dumps(report, indent=2))
     return report
@@ -78,7 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     for r in report["bags"]:
         print(f"analyze: {r['label']}: settled at step {r.get('settling_step')}, max penetration "
-              f"{r['max_penetration']:.4g}, solve median {r['solve_ms']['median']:.1f} ms, fallbacks {r['fallbacks']}"
+              f"{r['max_penetration']:.4g}, solve median {r['solve_ms']['median']:.1f} ms, fallbacks {r['fallbacks']}, "
+              + (f"certificate violations {r['certificate_violations']} of {r['certificate_checked']} checked"
+                 if r["certificate_checked"] is not None else "no certificate in the bag")
               + ("" if r["finished"] else " (file not finished)"))
-    print(f"analyze: wrote {args.out}/metrics.json, phase_portrait.png, time_series.png")
+    print(f"analyze: wrote {args.out}/metrics.json, phase_portrait.png, time_series.png"
+          + (", value_function.png" if (args.out / "value_function.png").exists() else ""))
     return 0

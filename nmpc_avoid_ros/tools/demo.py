@@ -34,7 +34,7 @@ RUNS = (("with_avoidance", None), ("without_avoidance", 0.0))
 RECORDED_TYPES = ["state=std_msgs/msg/Float64MultiArray", "command=std_msgs/msg/Float64MultiArray",
                   "target=std_msgs/msg/Float64MultiArray", "obstacles=visualization_msgs/msg/MarkerArray",
                   "/diagnostics=diagnostic_msgs/msg/DiagnosticArray", "controller/prediction=nav_msgs/msg/Path",
-                  "/clock=rosgraph_msgs/msg/Clock"]
+                  "controller/certificate=std_msgs/msg/Float64MultiArray", "/clock=rosgraph_msgs/msg/Clock"]
 
 
 def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env: dict[str, str], log_dir: Path,

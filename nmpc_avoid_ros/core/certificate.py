@@ -1,0 +1,159 @@
+"""Online stability certificate: the value-function decrease of the paper's proof, checked per sample.
+
+docs/certificate.md derives it. For the nominal model (plant = prediction model), unchanged
+parameters and a solver that does at least as well as the shifted candidate,
+
+    V_N(k+1) - V_N(k) <= -l(x(k) - x_a(k), u(k) - u_a(k)) - mu F(x(k), u(k)) + mu F(x_a(k), u_a(k))
+
+where V_N(k) = V_o + V_a + sum l is the cost of the plan applied at sample k. The right-hand side
+(`decrease_bound`) is computed as J(shifted candidate at the nominal successor) - V_N(k), which
+equals the expression above term by term (a test checks it) and needs nothing but the NLP's own
+cost terms, whatever the regions and the model.
+
+A violation is `decrease > decrease_bound + tolerance`, with
+
+    tolerance = certificate_tolerance * solver tolerance * max(1, |V_N(k)|)
+
+(the solver stops when its scaled KKT error is below its tolerance; the objective is then known to
+about that relative accuracy). A sample that is not a fresh optimum (budget-cut iterate, fallback)
+is scored with the cost of the plan it applied, and says so in `cost_source`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .controller import NmpcController, StepResult
+from .status import StepStatus
+
+#: the per-sample vector of `~/certificate` (std_msgs/Float64MultiArray), in this order
+LAYOUT = ("value_function", "decrease", "decrease_bound", "margin", "tolerance", "checked", "violated",
+          "certificate_violations", "consecutive_violations")
+
+#: where the value of V_N comes from, by step status
+COST_SOURCES = {StepStatus.OK: "optimal", StepStatus.TRUNCATED: "budget-cut iterate",
+                StepStatus.FALLBACK_SHIFT: "shifted plan (fallback)",
+                StepStatus.FALLBACK_STEADY: "steady plan (fallback)",
+                StepStatus.FALLBACK_RECOVERY: "recovery plan (fallback)",
+                StepStatus.FALLBACK_SAFE: "safe input (fallback)"}
+
+
+@dataclass(frozen=True)
+class CertificateSample:
+    """The check at one sample.
+
+    value_function: V_N of the plan applied at this sample (nan without a plan).
+    decrease: V_N(k) - V_N(k-1); decrease_bound: the previous sample's bound; both nan when unchecked.
+    tolerance: the allowance added to the bound; checked: whether the inequality applied here;
+    reason: why not ('' when checked); violated: decrease > bound + tolerance;
+    cost_source: what V_N is the cost of (see COST_SOURCES); violations: running count;
+    consecutive: violations in a row up to this sample; error_after: the settings'
+    certificate_error_after (that many in a row are an ERROR).
+    """
+
+    value_function: float
+    decrease: float
+    decrease_bound: float
+    tolerance: float
+    checked: bool
+    reason: str
+    violated: bool
+    cost_source: str
+    violations: int
+    consecutive: int
+    error_after: int = 3
+
+    @property
+    def margin(self) -> float:
+        """decrease_bound + tolerance - decrease: negative exactly when violated (nan if unchecked)."""
+        return self.decrease_bound + self.tolerance - self.decrease if self.checked else math.nan
+
+    @property
+    def level(self) -> str:
+        """'ok', 'warn' (a violation) or 'error' (error_after or more in a row)."""
+        if not self.violated:
+            return "ok"
+        return "error" if self.consecutive >= self.error_after else "warn"
+
+    def as_vector(self) -> list[float]:
+        """The values in LAYOUT order (booleans as 0/1)."""
+        return [self.value_function, self.decrease, self.decrease_bound, self.margin, self.tolerance,
+                float(self.checked), float(self.violated), float(self.violations), float(self.consecutive)]
+
+    def as_dict(self) -> dict:
+        """LAYOUT's values (nan -> None, so the JSON is strict), plus reason and cost_source."""
+        values = {k: (None if math.isnan(v) else v) for k, v in zip(LAYOUT, self.as_vector())}
+        return {**values, "checked": self.checked, "violated": self.violated, "reason": self.reason,
+                "cost_source": self.cost_source, "level": self.level}
+
+
+class StabilityCertificate:
+    """Checks the decrease inequality sample after sample for one controller.
+
+    Call `observe(result, y_t)` right after each `controller.step` (same regions and settings as
+    the step used), `skip(reason)` for a sample without a solve (no new state, stale state).
+    """
+
+    def __init__(self, controller: NmpcController) -> None:
+        self.controller = controller
+        self.violations = 0
+        self.consecutive = 0
+        self._previous: tuple[float, float, np.ndarray] | None = None  # V_N, bound, parameters without x0
+
+    def reset(self) -> None:
+        """Forget the previous sample (the next one is not checked)."""
+        self._previous = None
+
+    def skip(self, reason: str) -> CertificateSample:
+        """A sample without a solve: not checked, and the next one is not either."""
+        self._previous = None
+        return CertificateSample(math.nan, math.nan, math.nan, math.nan, False, reason, False, "none",
+                                 self.violations, self.consecutive)
+
+    def observe(self, result: StepResult, y_t: np.ndarray) -> CertificateSample:
+        """Score the sample whose step gave `result` for target y_t [p]."""
+        source = COST_SOURCES.get(result.status, str(result.status))
+        n, N = self.controller.model.n, self.controller.nlp.layout.horizon
+        if not np.all(np.isfinite(result.y_a)) or result.states.shape[0] != N + 1 or result.inputs.shape[0] != N:
+            return self.skip(f"no plan of horizon {N} ({source})")
+        par = self.controller.parameters(result.states[0], y_t)
+        value = self.plan_cost(result.states, result.inputs, result.y_a, result.x_a, result.u_a, par)
+        # the shifted candidate (u(1..N-1), u_a; x(2..N), x_a) from the nominal successor x(1)
+        candidate_states = np.vstack([result.states[1:], result.x_a[None, :]])
+        candidate_inputs = np.vstack([result.inputs[1:], result.u_a[None, :]])
+        candidate_par = par.copy()
+        candidate_par[:n] = result.states[1]
+        bound = self.plan_cost(candidate_states, candidate_inputs, result.y_a, result.x_a, result.u_a,
+                               candidate_par) - value
+        previous, self._previous = self._previous, (value, bound, par[n:].copy())
+        if previous is None:
+            return self._unchecked(value, source, "first sample")
+        if not np.array_equal(previous[2], par[n:]):
+            return self._unchecked(value, source, "parameters changed (target, regions or weights)")
+        if not math.isfinite(value) or not math.isfinite(previous[0]):
+            return self._unchecked(value, source, "cost not finite")
+        decrease = value - previous[0]
+        s = self.controller.settings
+        tolerance = s.certificate_tolerance * s.tolerance * max(1.0, abs(previous[0]))
+        violated = decrease > previous[1] + tolerance
+        self.consecutive = self.consecutive + 1 if violated else 0
+        self.violations += int(violated)
+        return CertificateSample(value, decrease, previous[1], tolerance, True, "", violated, source,
+                                 self.violations, self.consecutive, s.certificate_error_after)
+
+    def _unchecked(self, value: float, source: str, reason: str) -> CertificateSample:
+        self.consecutive = 0
+        return CertificateSample(value, math.nan, math.nan, math.nan, False, reason, False, source,
+                                 self.violations, self.consecutive)
+
+    def plan_cost(self, states: np.ndarray, inputs: np.ndarray, y_a: np.ndarray, x_a: np.ndarray,
+                  u_a: np.ndarray, par: np.ndarray) -> float:
+        """V_o + V_a + sum l of a plan: states x(0..N) [N+1, n], inputs [N, m], steady triple, parameters."""
+        nlp = self.controller.nlp
+        rest = None if nlp.layout.closed_form else np.concatenate([x_a, u_a])
+        w = nlp.layout.join_w(inputs, states[1:], y_a, rest, x0=states[0])
+        w = nlp.fill_slacks(w, par)
+        return float(sum(float(term[0]) for term in nlp.terms(w, par)))

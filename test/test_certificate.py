@@ -1,0 +1,98 @@
+"""The online stability certificate (core/certificate.py, docs/certificate.md) on the paper's loops."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from nmpc_avoid_ros.core.certificate import LAYOUT, StabilityCertificate
+from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.settings import ControllerSettings
+
+TARGET = np.array([5.0])
+
+
+def violations(run) -> int:
+    return sum(c["violated"] for c in run.certificate)
+
+
+@pytest.mark.parametrize("mu", [0.0, 1e8])
+def test_no_violation_on_the_nominal_euler_runs_and_every_later_sample_checked(paper, mu):
+    run = paper(mu, "euler")
+    assert violations(run) == 0
+    assert [c["checked"] for c in run.certificate] == [False] + [True] * 49
+    assert run.certificate[0]["reason"] == "first sample"
+    # the value function decreases along the loop (Lyapunov), to ~0 at the steady state
+    values = np.array([c["value_function"] for c in run.certificate])
+    assert values[0] > 1e5 and values[-1] < 1e-3
+    assert all(c["decrease"] <= c["decrease_bound"] + c["tolerance"] for c in run.certificate[1:])
+
+
+def test_model_mismatch_breaks_the_certificate_without_avoidance(paper):
+    """The continuous plant is not the Euler prediction model: the nominal inequality may fail."""
+    run = paper(0.0, "continuous")
+    bad = [c for c in run.certificate if c["violated"]]
+    assert len(bad) >= 1
+    assert all(c["margin"] < 0 for c in bad)
+
+
+def test_bound_is_the_proofs_closed_form(paper):
+    """decrease_bound(k+1) = -l(x - x_a, u - u_a) - mu F(x) + mu F(x_a) at sample k (docs/certificate.md)."""
+    mu = 1e8
+    run = paper(mu, "euler")
+
+    def penalty(x):  # F of the paper's keep-in |x1 x2| <= 2
+        g = x[0] * x[1]
+        return max(0.0, g - 2) ** 2 + max(0.0, -g - 2) ** 2
+
+    for k in range(49):
+        x, u, y_a = run.x[k], run.u[k], run.y_a[k]
+        x_a, u_a = np.array([y_a[0], 0.0]), y_a  # van der Pol: g_x(y) = [y, 0], g_u(y) = y
+        stage = float(np.sum((x - x_a) ** 2) + np.sum((u - u_a) ** 2))
+        expected = -stage - mu * penalty(x) + mu * penalty(x_a)
+        got = run.certificate[k + 1]["decrease_bound"]
+        assert got == pytest.approx(expected, rel=1e-9, abs=1e-6)
+
+
+def test_a_shifted_plan_is_scored_with_its_own_cost_and_meets_the_bound_exactly():
+    controller = NmpcController(ControllerSettings())
+    certificate = StabilityCertificate(controller)
+    first = certificate.observe(controller.step([-5.0, 0.0], TARGET), TARGET)
+    shifted = controller.coast()  # the shifted plan applied at the nominal successor
+    sample = certificate.observe(shifted, TARGET)
+    assert sample.cost_source == "shifted plan (fallback)" and sample.checked
+    assert sample.decrease == pytest.approx(sample.decrease_bound, rel=1e-9)
+    assert sample.value_function < first.value_function
+    assert len(sample.as_vector()) == len(LAYOUT)
+
+
+def test_parameter_change_is_not_checked_and_no_plan_is_skipped():
+    controller = NmpcController(ControllerSettings())
+    certificate = StabilityCertificate(controller)
+    result = controller.step([-5.0, 0.0], TARGET)
+    certificate.observe(result, TARGET)
+    x = result.states[1]
+    moved = certificate.observe(controller.step(x, np.array([3.0])), np.array([3.0]))
+    assert not moved.checked and "parameters changed" in moved.reason and math.isnan(moved.margin)
+    skipped = certificate.skip("no new state")
+    assert not skipped.checked and skipped.reason == "no new state"
+
+
+def test_repeated_violations_escalate_from_warn_to_error():
+    """A disturbance pushing the state away every sample breaks the nominal decrease again and again."""
+    error_after = 3
+    controller = NmpcController(ControllerSettings(mu=0.0, certificate_error_after=error_after))
+    certificate = StabilityCertificate(controller)
+    x = np.array([4.0, 0.0])
+    levels = []
+    for _ in range(8):
+        result = controller.step(x, TARGET)
+        levels.append(certificate.observe(result, TARGET).level)
+        x = result.states[1] - np.array([0.6, 0.0])  # the nominal successor, disturbed away from y_t
+    assert "warn" in levels
+    assert levels.count("error") >= 1
+    first_error = levels.index("error")
+    assert levels[first_error - error_after + 1:first_error] == ["warn"] * (error_after - 1)
+    assert certificate.violations == sum(level != "ok" for level in levels)
