@@ -233,7 +233,7 @@ def test_certificate_violations_warn_with_the_margin_then_error_and_go_on_the_ce
 
 
 def test_stale_state_triggers_the_safe_behaviour_and_an_error_then_control_resumes(ros_graph):
-    p, listen, ctrl = controller_with_probe(ros_graph, 1.0, "-p", "state_timeout:=0.6", "-p", "sample_time:=0.2")
+    p, listen, ctrl = controller_with_probe(ros_graph, 0.5, "-p", "state_timeout:=0.6", "-p", "sample_time:=0.2")
 
     def feed(seconds: float) -> None:
         end = p.node.get_clock().now().nanoseconds + seconds * 1e9
