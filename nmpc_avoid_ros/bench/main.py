@@ -10,6 +10,9 @@ burst of load on the shared machine hits every variant alike. Building a variant
 - `scaling/N=<N>`: the mobile robot (config/mobile_robot.yaml) among 4 ellipses, N = 5..100.
 - `moving_obstacle`: the mobile robot at N = 20 while an ellipse moves every sample (the
   obstacle set changes every sample; no variant may rebuild).
+- `crossing_walker`: the shipped scene config/scenes/crossing_walker.yaml at N = 20, the walker
+  given with its velocity every sample; our paths predict it (`predict_obstacles`), and their
+  `_no_prediction` twins (run in this scenario only) solve the same scene with it off.
 
 Then, unless --no-node: the controller node's latency (state received -> command published)
 through DDS, and its start-up time with a cold and a warm solver cache.
@@ -36,6 +39,7 @@ from ..core.errors import NmpcError
 from ..core.metrics import max_abs_product, outputs, penetration, time_stats, tracking
 from ..core.models import Model, make_model
 from ..core.regions import Ellipse, Region
+from ..core.scene import load_scene
 from ..core.settings import ControllerSettings, default_config_path, load_params_file
 from .variants import OursStepper, Sample
 
@@ -58,6 +62,8 @@ def variant_factories() -> dict[str, Callable[[ControllerSettings, Model], Stepp
         REFERENCE: PEERS["opti_ipopt_paper"],
         "ours_ipopt": ours("ipopt", codegen=False),
         "ours_fatrop": ours("fatrop"),
+        "ours_ipopt_no_prediction": ours("ipopt", codegen=False, predict_obstacles=False),
+        "ours_fatrop_no_prediction": ours("fatrop", predict_obstacles=False),
         "ours_sqp": ours("sqp"),
         "ours_sqp_hpipm": ours("sqp_hpipm"),
         "ours_sqp_rt": ours("sqp", max_iterations=REAL_TIME_ITERATIONS),
@@ -144,6 +150,18 @@ def moving_obstacle_scenario(steps: int) -> Scenario:
 
     return Scenario("moving_obstacle", s, make_model(s.model), np.array([-8.0, -6.0, 0.0, 0.0]),
                     np.array([8.0, 6.0]), steps, "continuous", regions)
+
+
+#: the variants that switch prediction off: run in the prediction scenario only
+NO_PREDICTION = frozenset({"ours_ipopt_no_prediction", "ours_fatrop_no_prediction"})
+
+
+def crossing_walker_scenario(steps: int) -> Scenario:
+    """The shipped crossing-walker scene at N = 20: the walker where it is, with its velocity, every sample."""
+    scene = load_scene(default_config_path().parent / "scenes" / "crossing_walker.yaml")
+    s = robot_settings(20)
+    return Scenario("crossing_walker", s, make_model(s.model), np.array(scene.x0), np.array(scene.target_at(0.0)),
+                    steps, scene.plant, lambda k: scene.regions_at(k * s.sample_time))
 
 
 def start_loop(stepper: Stepper, scenario: Scenario) -> ClosedLoop:
@@ -261,10 +279,10 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.quick:
         scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *scaling_scenarios((5, 20, 50), 6),
-                     moving_obstacle_scenario(10)]
+                     moving_obstacle_scenario(10), crossing_walker_scenario(40)]
     else:
         scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *scaling_scenarios((5, 10, 20, 50, 100), 40),
-                     moving_obstacle_scenario(60)]
+                     moving_obstacle_scenario(60), crossing_walker_scenario(80)]
     if args.scenarios:
         prefixes = tuple(args.scenarios.split(","))
         scenarios = [sc for sc in scenarios if sc.name.startswith(prefixes)]
@@ -279,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
     for sc in scenarios:
         if sc.model.name != "van_der_pol" and sc.settings.horizon >= 20:
             sc.skip = sqp_paths | (slow_peers if args.quick and sc.settings.horizon >= 50 else frozenset())
+        if sc.name != "crossing_walker":
+            sc.skip |= NO_PREDICTION
     started = time.perf_counter()
     records: list[dict] = []
     try:
