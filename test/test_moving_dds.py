@@ -83,7 +83,7 @@ def test_bad_moving_markers_are_refused_or_reset_with_a_reason_and_the_last_good
 
     send((3.0, -2.0), text="velocity=0.0,0.5")  # the good moving region
     good = settle(2.0)
-    assert (good["regions"], good["moving_regions"], good["status"]) == ("1", "1", "ok")
+    assert (good["regions"], good["moving_regions"]) == ("1", "1")
     cases = [
         (dict(text="velocity=nan,0.5"), "refused", "NaN or infinite"),
         (dict(text="velocity=inf,0"), "refused", "NaN or infinite"),
@@ -91,7 +91,7 @@ def test_bad_moving_markers_are_refused_or_reset_with_a_reason_and_the_last_good
         (dict(stamp=now() + 60.0, text="velocity=0.0,0.5"), "refused", "ahead of its receipt"),
         (dict(stamp=now() - 60.0, text="velocity=0.0,0.5"), "refused", "behind its receipt"),
     ]
-    rejected = int(good["rejected_inputs"])
+    rejected, samples = int(good["rejected_inputs"]), int(good["samples"])
     for kwargs, verdict, reason in cases:
         send((9.0, 9.0), **kwargs)
         last = settle(0.8)
@@ -99,7 +99,9 @@ def test_bad_moving_markers_are_refused_or_reset_with_a_reason_and_the_last_good
         assert int(last["rejected_inputs"]) == rejected + 1
         rejected += 1
         # the last good region stays in force and the controller keeps solving
-        assert (last["regions"], last["moving_regions"], last["status"]) == ("1", "1", "ok"), last
+        assert (last["regions"], last["moving_regions"]) == ("1", "1"), last
+        assert int(last["samples"]) > samples and math.isfinite(float(last["solve_time_ms"]))
+        samples = int(last["samples"])
     # estimated motion: a stamped marker without velocity that jumps across the map is reset
     t0 = now()
     send((0.0, -3.0), stamp=t0)
@@ -110,5 +112,5 @@ def test_bad_moving_markers_are_refused_or_reset_with_a_reason_and_the_last_good
     jumped = settle(0.8)
     assert jumped["last_obstacle_issue"].startswith("reset tracker/1") and "jumped" in jumped["last_obstacle_issue"]
     assert int(jumped["obstacle_resets"]) >= 1
-    assert (jumped["regions"], jumped["moving_regions"], jumped["status"]) == ("1", "0", "ok")
+    assert (jumped["regions"], jumped["moving_regions"]) == ("1", "0")
     assert ctrl.alive() and math.isfinite(float(jumped["solve_time_ms"]))

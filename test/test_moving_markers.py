@@ -2,19 +2,26 @@
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from visualization_msgs.msg import MarkerArray
 
+from nmpc_avoid_ros.bag.analysis import load_run, run_metrics
+from nmpc_avoid_ros.bag.mcap_io import Ros2McapWriter
 from nmpc_avoid_ros.core.motion import VelocityEstimator
 from nmpc_avoid_ros.core.regions import Ellipse, rotated_box
+from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.ros.conversions import seconds_to_time
 from nmpc_avoid_ros.ros.markers import RegionStore, region_marker, regions_to_markers, velocity_from_text
 
 MAX_SPEED = 2.0
+ROBOT = Path(__file__).resolve().parents[1] / "config" / "mobile_robot.yaml"
 
 
 def store() -> RegionStore:
@@ -162,3 +169,39 @@ def test_any_update_sequence_leaves_finite_bounded_motion(updates):
 def test_estimator_refuses_bad_bounds():
     with pytest.raises(Exception, match="max_speed"):
         VelocityEstimator(max_speed=math.nan)
+
+
+def _diagnostic(state: list[float], state_time: float) -> DiagnosticArray:
+    values = {"state": json.dumps(state), "command": "[0.0, 0.0]", "y_a": "[nan, nan]", "solve_time_ms": "1.0",
+              "status": "ok", "state_time": repr(state_time), "samples": "1", "fallbacks": "0",
+              "rejected_inputs": "0", "deadline_overruns": "0", "stale": "0"}
+    status = DiagnosticStatus(name="/controller: nmpc", values=[KeyValue(key=k, value=v) for k, v in values.items()])
+    return DiagnosticArray(status=[status])
+
+
+@pytest.mark.parametrize("explicit", [True, False])
+def test_analyze_evaluates_a_recorded_moving_region_at_each_sample_time(tmp_path, explicit):
+    """A walker recorded as stamped markers (velocity in text, or estimated from the stamps): analysis
+    places it where it was at each state's time. The robot sits where the walker passes at t = 10 s."""
+    settings = ControllerSettings.from_params(load_params_file(ROBOT).section("controller"))
+    walker = Ellipse((0.0, -5.0), (0.5, 0.5), 0.0, "output", velocity=(0.0, 0.5), stamp=100.0)
+    path = tmp_path / "walker.mcap"
+    with Ros2McapWriter(path) as bag:
+        for k in range(120):  # markers at 10 Hz, samples at 4 Hz, from t = 100 s
+            t = 100.0 + 0.1 * k
+            marker = region_marker(walker.at(t), 0, "tracker", t)
+            if not explicit:
+                marker.text = ""
+            bag.write_message("/obstacles", MarkerArray(markers=[marker]), int(t * 1e9))
+        for k in range(48):
+            t = 100.0 + 0.25 * k + 0.02
+            bag.write_message("/diagnostics", _diagnostic([0.0, 0.0, 0.0, 0.0], t), int((t + 0.01) * 1e9))
+    run = load_run(path, settings=settings)
+    metrics = run_metrics(run, settings)
+    # deepest when the walker's centre passes the origin (t = 110 s, 10 s after its stamp)
+    worst = max(range(len(run.x)), key=lambda k: run.regions_at(k)[0].depth((0.0, 0.0)) if run.regions_at(k) else -9)
+    assert run.times[worst] == pytest.approx(110.0, abs=0.13)
+    assert metrics["max_penetration_obstacles"] == pytest.approx(1.0, abs=0.01)
+    assert metrics["min_clearance_obstacles"] == pytest.approx(-1.0, abs=0.01)
+    # the store's last update alone (no motion between updates) would be off by up to 0.1 s * 0.5 m/s
+    assert all(r.moving for regions in run.regions[3:] for r in regions)
