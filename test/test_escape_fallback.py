@@ -158,3 +158,25 @@ def test_fallback_candidates_are_chosen_by_predicted_violation():
     assert choice.kind in ("safe", "recovery") and "steady" in choice.reason
     with pytest.raises(InputError, match="input box"):
         controller.set_safe_input([7.0])
+
+
+def test_robot_escape_guesses_detour_around_an_output_frame_ellipse_and_a_penetrating_plan_is_replaced():
+    settings = ControllerSettings(model="double_integrator_2d", sample_time=0.25, horizon=10, discretization="rk4",
+                                  state_min=(-10.0, -10.0, -1.5, -1.5), state_max=(10.0, 10.0, 1.5, 1.5),
+                                  input_min=(-1.0, -1.0), input_max=(1.0, 1.0), keep_in=(),
+                                  state_weights=(1.0, 1.0, 0.1, 0.1), input_weights=(0.5, 0.5), kappa=100.0, mu=1e5)
+    controller = NmpcController(settings)
+    wall = Ellipse((0.0, 0.0), (0.5, 2.0), 0.0, "output")
+    controller.set_regions([wall])
+    x, y_t = np.array([-2.0, 0.0, 0.0, 0.0]), np.array([3.0, 0.0])
+    par = controller.parameters(x, y_t)
+    guesses = controller.escape.guesses(x, np.array([-2.0, 0.0]), y_t, par, controller.regions)
+    labels = [g.label for g in guesses]
+    assert labels == ["beyond0", "beyond0_left_of_region0", "beyond0_right_of_region0"], labels
+    assert guesses[0].y_a[0] > 0.5  # beyond the wall
+    detour_y = [g.states[:, 1].max() if "left" in g.label else g.states[:, 1].min() for g in guesses[1:]]
+    assert detour_y[0] > 2.0 and detour_y[1] < -2.0  # around either end of the wall
+    # a plan heading straight into the wall is replaced by a candidate that avoids it
+    inside_soon = np.tile([1.0, 0.0], (10, 1))  # straight into the wall
+    choice = controller.fallback.check_plan(x, par, inside_soon)
+    assert choice is not None and choice.kind in ("safe", "recovery") and not choice.unavoidable, choice

@@ -176,6 +176,7 @@ class NmpcController:
         self.escape = EscapeGuesses(self.cold_nlp or self.nlp, self.model, self.settings)
         # samples to wait before the next escape attempt (one that found nothing better)
         self._escape_wait = 0
+        self._overrides = 0  # consecutive samples whose avoidable plan penetration was overridden
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
@@ -241,6 +242,7 @@ class NmpcController:
         self._pending = None
         self._reseed = False
         self._escape_wait = 0
+        self._overrides = 0
 
     def parameters(self, x: np.ndarray, y_t: np.ndarray, time: float | None = None) -> np.ndarray:
         """The NLP parameter vector for state x [n] measured at `time` (s) and target y_t [p] with the
@@ -301,15 +303,22 @@ class NmpcController:
         return result
 
     def _bound_violation(self, x: np.ndarray, par: np.ndarray, result: StepResult) -> None:
-        """Mark (and where another candidate predicts less violation, replace) a plan that predicts penetration."""
-        choice = self.fallback.unavoidable(x, par, result.inputs)
-        if choice is None:
+        """Replace a plan that predicts penetration by the least-violating input (FallbackSelector.check_plan).
+
+        An avoidable penetration is overridden for at most N samples in a row, so that a plan the
+        solver keeps choosing is not held off for good (the plant would stand still).
+        """
+        choice = self.fallback.check_plan(x, par, result.inputs)
+        if choice is None or (not choice.unavoidable and self._overrides >= self.nlp.layout.horizon):
+            self._overrides = 0
             return
-        result.region_unavoidable = True
+        result.region_unavoidable = choice.unavoidable
         result.predicted_violation = choice.violation
-        result.fallback_reason = f"region unavoidable from the current state; {choice.reason}"
+        why = "region unavoidable from the current state" if choice.unavoidable else "plan predicts penetration"
+        result.fallback_reason = f"{why}; {choice.reason}"
         result.solve_time += choice.solve_time
         if choice.kind != "plan":
+            self._overrides += not choice.unavoidable
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
 

@@ -35,6 +35,9 @@ CANDIDATES = ("shift", "steady", "safe", "recovery")
 #: predicted violations up to this count as none (region g and state units): a plan's own penalty
 #: optimum predicts ~1e-4 of penetration, which must not lose to a recovery solve over rounding
 VIOLATION_TOLERANCE = 1e-3
+#: a solved plan predicting more penetration than this is replaced by a candidate that avoids the
+#: regions (see FallbackSelector.check_plan)
+PLAN_OVERRIDE = 1e-2
 #: iteration budget of the recovery solve
 RECOVERY_ITERATIONS = 100
 #: weight of |u - u_ref|^2 in the recovery solve: picks the input nearest the reference among
@@ -53,6 +56,7 @@ class FallbackChoice:
     violation: float
     reason: str
     solve_time: float = 0.0
+    unavoidable: bool = False  # every candidate predicts a violation (see FallbackSelector.check_plan)
 
 
 class FallbackSelector:
@@ -147,15 +151,24 @@ class FallbackSelector:
         states, violation = predicted[kind]
         return FallbackChoice(kind, sequences[kind], states, violation, reason, seconds)
 
-    def unavoidable(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray) -> FallbackChoice | None:
-        """None if the accepted plan's inputs [H, m] predict no violation beyond VIOLATION_TOLERANCE;
-        else (a region the plan cannot avoid from x) the least-violating of the plan (kind 'plan'),
-        the safe input and the recovery solve."""
-        if self.predict(x, plan_inputs, par)[1] <= VIOLATION_TOLERANCE:
+    def check_plan(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray) -> FallbackChoice | None:
+        """A better input than the solved plan's [H, m], or None to apply the plan.
+
+        Only for a plan predicting penetration beyond VIOLATION_TOLERANCE: the least-violating of
+        the plan (kind 'plan'), the safe input and the recovery solve, when every one of them predicts
+        a violation (a region that cannot be avoided from x: `unavoidable`), or when the plan predicts
+        more than PLAN_OVERRIDE and another candidate avoids the regions. A plan's small penetration
+        that is avoidable is the soft penalty's trade-off (the robot's mu = 1e5 plans predict a few
+        1e-3): overriding it would hold the plant still.
+        """
+        plan_violation = self.predict(x, plan_inputs, par)[1]
+        if plan_violation <= VIOLATION_TOLERANCE:
             return None
         choice = self.choose(x, par, plan_inputs, None, True)
         if choice.kind == "shift":
             choice.kind = "plan"
             choice.reason = "plan" + choice.reason[len("shift"):].replace("(shift ", "(plan ")
+        choice.unavoidable = choice.violation > VIOLATION_TOLERANCE
+        if not choice.unavoidable and plan_violation <= PLAN_OVERRIDE:
+            return None
         return choice
-
