@@ -22,7 +22,7 @@ from nmpc_avoid_ros.tools.processes import NodeProcess
 
 DASK = [str(Path(sys.executable).parent / "dask")]
 # 40 scenarios: 30 van der Pol and 10 robot runs, short, so that the whole module stays near a minute
-ARGS = ["--vdp", "30", "--robot", "10", "--seed", "11", "--vdp-steps", "20", "--robot-steps", "12",
+ARGS = ["--vdp", "30", "--robot", "10", "--seed", "11", "--vdp-steps", "15", "--robot-steps", "10",
         "--max-solve-time", "30", "--no-plots", "--no-progress"]
 SCENARIOS = 40
 
