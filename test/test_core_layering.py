@@ -1,4 +1,5 @@
-"""docs/design.md ("Layers"): `core` never imports ROS (rclpy or any message package)."""
+"""Layers: `core` never imports ROS (rclpy or any message package), and the package layers depend one way
+(docs/design.md section 2)."""
 
 from __future__ import annotations
 
@@ -42,3 +43,44 @@ def test_importing_all_of_core_loads_no_ros_module():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+PACKAGE_DIR = CORE_DIR.parent
+#: layer -> the sibling layers it must not import (core <- ros <- bag <- nodes, evaluation, tools)
+FORBIDDEN = {"core": {"ros", "bag", "nodes", "evaluation", "tools", "bench"},
+             "ros": {"bag", "nodes", "evaluation", "tools", "bench"},
+             "bag": {"nodes", "evaluation", "tools", "bench"},
+             "evaluation": {"nodes", "tools"}}
+
+
+def package_imports(path: Path) -> set[str]:
+    """The first-level subpackages of nmpc_avoid_ros that a module imports (absolute or relative)."""
+    parts = path.relative_to(PACKAGE_DIR.parent).with_suffix("").parts  # ('nmpc_avoid_ros', 'bag', 'x')
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = list(parts[:-node.level]) if node.level else []
+            module = [*base, *(node.module.split(".") if node.module else [])]
+            if module[:1] == ["nmpc_avoid_ros"]:
+                names.add(module[1] if len(module) > 1 else node.names[0].name)
+        elif isinstance(node, ast.Import):
+            names.update(a.name.split(".")[1] for a in node.names if a.name.startswith("nmpc_avoid_ros."))
+    return names
+
+
+def test_layers_depend_one_way():
+    offenders = {}
+    for layer, forbidden in FORBIDDEN.items():
+        files = sorted((PACKAGE_DIR / layer).rglob("*.py"))
+        assert files, layer
+        for f in files:
+            bad = package_imports(f) & forbidden
+            if bad:
+                offenders[str(f.relative_to(PACKAGE_DIR))] = sorted(bad)
+    assert offenders == {}
+
+
+def test_the_layer_check_sees_relative_imports():
+    probe = PACKAGE_DIR / "evaluation" / "campaign" / "scoring.py"
+    assert {"core"} <= package_imports(probe)
+    assert "tools" in package_imports(PACKAGE_DIR / "bench" / "node.py")
