@@ -205,3 +205,19 @@ def test_analyze_evaluates_a_recorded_moving_region_at_each_sample_time(tmp_path
     assert metrics["min_clearance_obstacles"] == pytest.approx(-1.0, abs=0.01)
     # the store's last update alone (no motion between updates) would be off by up to 0.1 s * 0.5 m/s
     assert all(r.moving for regions in run.regions[3:] for r in regions)
+
+
+def test_republished_markers_move_to_the_new_clock_and_keep_their_velocity():
+    from rclpy.serialization import serialize_message
+
+    from nmpc_avoid_ros.tools.replay import restamped
+
+    walker = Ellipse((0.0, -5.0), (0.5, 0.5), 0.0, "output", velocity=(0.0, 0.5), stamp=100.0)
+    msg = regions_to_markers([walker], stamp=100.0)
+    msg.markers.append(region_marker(Ellipse((3.0, 3.0), (1.0, 1.0)), 5, "static"))  # zero stamp: stays zero
+    out = restamped(serialize_message(msg), MarkerArray, 2_500_000_000)
+    assert out.markers[1].header.stamp.sec == 102 and out.markers[1].text == "velocity=0.0,0.5"
+    assert (out.markers[2].header.stamp.sec, out.markers[2].header.stamp.nanosec) == (0, 0)
+    store = RegionStore()
+    store.apply(out, now=102.0)
+    assert store.active(102.0)[0].at(103.0).center == pytest.approx(walker.at(100.5).center)  # 2.5 s earlier
