@@ -122,6 +122,12 @@ def test_truncated_bag_is_recovered_and_said_to_be_unfinished(demo_out, tmp_path
     assert recovered == [list(m.data) for _, m in full.topics["/state"]][: len(recovered)]
     res = cli("analyze", str(cut), "--out", str(tmp_path / "o"))
     assert res.returncode == 0 and "not finished" in res.stderr + res.stdout
+    # a clear partial result: the recovered samples are replayed, and the output says so
+    res = cli("replay", str(cut), "--closed-loop", "--json", str(tmp_path / "cut.json"))
+    assert res.returncode == 0 and "not finished" in res.stdout, res.stderr
+    partial = json.loads((tmp_path / "cut.json").read_text())
+    assert partial["replay"]["finished"] is False and len(partial["u"]) == len(load_run(cut).x)
+    assert partial["replay"]["max_state_error"] <= 1e-6
 
 
 @pytest.mark.parametrize("content", [b"", b"not an mcap at all\n" * 10, b"\x89MCAP0\r\n\x01\x02"])
@@ -147,8 +153,47 @@ def test_a_bag_without_controller_topics_gets_a_clear_error(demo_out, tmp_path):
         writer.write_message("/state", Float64MultiArray(data=[1.0, 2.0]), 1)
     with pytest.raises(Exception, match="no controller samples"):
         load_run(only_state)
-    res = cli("analyze", str(only_state), "--out", str(tmp_path / "o"))
-    assert res.returncode == 1 and "no controller samples" in res.stderr and "Traceback" not in res.stderr
+    for args in (["analyze", str(only_state), "--out", str(tmp_path / "o")],
+                 ["replay", str(only_state), "--closed-loop"]):
+        res = cli(*args)
+        assert res.returncode == 1 and "no controller samples" in res.stderr and "Traceback" not in res.stderr
+        assert len([line for line in res.stderr.splitlines() if "error" in line]) == 1
+
+
+def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline_mu_0_loop(demo_out, paper, tmp_path):
+    for name in RUNS:
+        res = cli("replay", str(demo_out / f"{name}.mcap"), "--closed-loop", "--json", str(tmp_path / f"{name}.json"))
+        assert res.returncode == 0, res.stderr
+        same = json.loads((tmp_path / f"{name}.json").read_text())
+        assert same["replay"]["max_state_error"] <= 1e-6 and len(same["u"]) >= 50
+        assert same["summary"]["certificate_violations"] == 0
+    res = cli("replay", str(demo_out / "with_avoidance.mcap"), "--closed-loop", "--mu", "0", "--json",
+              str(tmp_path / "mu0.json"), "--out", str(tmp_path / "mu0"))
+    assert res.returncode == 0, res.stderr
+    mu0 = json.loads((tmp_path / "mu0.json").read_text())
+    offline = paper(0.0, "euler")
+    np.testing.assert_allclose(np.array(mu0["x"])[:51], offline.x, atol=1e-9)
+    assert mu0["summary"]["settling_step"] == 18
+    assert mu0["summary"]["max_abs_x1x2"] == pytest.approx(10.0, abs=1e-3)
+    metrics = json.loads((tmp_path / "mu0" / "metrics.json").read_text())
+    assert metrics["recorded"]["settling_step"] == 33 and metrics["runs"][0]["metrics"]["settling_step"] == 18
+    for figure in ("phase_portrait.png", "time_series.png", "value_function.png"):
+        assert (tmp_path / "mu0" / figure).stat().st_size > 10_000, figure
+
+
+def test_closed_loop_sweep_gives_a_table_and_a_figure_and_refuses_what_cannot_be_swept(demo_out, tmp_path):
+    bag = str(demo_out / "with_avoidance.mcap")
+    res = cli("replay", bag, "--closed-loop", "--sweep", "mu=0,1e8", "--out", str(tmp_path / "s"))
+    assert res.returncode == 0, res.stderr
+    rows = [line for line in (tmp_path / "s" / "sweep.md").read_text().splitlines() if line.startswith("| mu=")]
+    assert [r.split("|")[1].strip() for r in rows] == ["mu=0", "mu=1e+08"]
+    assert rows[0].split("|")[2].strip() == "18" and rows[1].split("|")[2].strip() == "33"
+    assert (tmp_path / "s" / "sweep.png").stat().st_size > 10_000
+    for sweep, words in (("foo=1,2", "unknown setting"), ("horizon=5,10", "structural"), ("mu=1,x", "numbers"),
+                         ("mu=-1", "mu")):
+        res = cli("replay", bag, "--closed-loop", "--sweep", sweep)
+        assert res.returncode == 1 and words in res.stderr and "Traceback" not in res.stderr, (sweep, res.stderr)
+        assert len(res.stderr.strip().splitlines()) == 1
 
 
 def test_replay_republishes_the_recorded_topics_with_their_timing(demo_out, ros_graph):

@@ -52,6 +52,8 @@ class RecordedRun:
     #: the controller's stability certificate per sample (CERTIFICATE_KEYS -> [K], nan where the
     #: diagnostics lack it) and `violated` [K] bool; empty for bags of controllers without it
     certificate: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the run-time settings the diagnostics report per sample (RECORDED_PARAMETERS -> [K])
+    parameters: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -67,6 +69,8 @@ class RecordedRun:
         return tuple(r.at(t) if r.moving else r for r in regions)
 
 
+#: run-time settings whose value in force the controller's diagnostics carry at every sample
+RECORDED_PARAMETERS = ("mu", "kappa")
 #: diagnostic keys of the certificate (nodes/controller.py)
 CERTIFICATE_KEYS = ("value_function", "decrease", "decrease_bound", "certificate_margin")
 
@@ -161,6 +165,8 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         # the controller's own time of each state; older bags: the diagnostic's log time
         times=np.array([float(v["state_time"]) if "state_time" in v else stamp * 1e-9 for stamp, v in samples]),
         certificate=_certificate([v for _, v in samples]),
+        parameters={key: np.array([float(v[key]) for _, v in samples]) for key in RECORDED_PARAMETERS
+                    if all(key in v for _, v in samples)},
     )
 
 

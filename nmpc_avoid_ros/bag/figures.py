@@ -17,7 +17,9 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Ellipse as EllipsePatch  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
+from ..core.models import make_model  # noqa: E402
 from ..core.regions import Ellipse, Polygon, Region  # noqa: E402
+from ..core.settings import ControllerSettings  # noqa: E402
 
 COLORS = ("black", "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 
@@ -159,3 +161,19 @@ def value_function_plot(series: Sequence[tuple[str, np.ndarray, np.ndarray, np.n
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def run_figures(traces: Sequence[Trace], settings: ControllerSettings, target: Sequence[float], out: Path,
+                what: str) -> tuple[Path, Path]:
+    """OUT/phase_portrait.png and OUT/time_series.png of runs of one configuration (the paper's
+    shaded region when its keep-in |x1 x2| <= 2 is configured); `what` ends the titles."""
+    model = make_model(settings.model)
+    paper_region = model.name == "van_der_pol" and any("x1*x2" in k.replace(" ", "") for k in settings.keep_in)
+    lo, hi = settings.state_min, settings.state_max
+    target_state = [target[0], 0.0] if model.name == "van_der_pol" else list(target[:2])
+    phase = phase_portrait(traces, out / "phase_portrait.png", product_bound=2.0 if paper_region else None,
+                           target_state=target_state, xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]),
+                           title=f"Phase portrait {what}")
+    series = time_series(traces, out / "time_series.png", state_names=model.state_names,
+                         input_names=model.input_names, target=target, title=f"States, input and y_a {what}")
+    return phase, series

@@ -20,10 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from ..bag.analysis import load_run, moving_snapshots, run_metrics, union_regions
-from ..bag.figures import Trace, phase_portrait, time_series, value_function_plot
+from ..bag.figures import Trace, run_figures, value_function_plot
 from ..bag.mcap_io import BagError
 from ..core.errors import NmpcError
-from ..core.models import make_model
 from ..core.settings import ControllerSettings, default_config_path, load_params_file
 
 
@@ -31,7 +30,6 @@ def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: lis
     """Read every bag, write DIR/metrics.json, phase_portrait.png and time_series.png."""
     config = config or default_config_path()
     settings = ControllerSettings.from_params(load_params_file(config).section("controller"))
-    model = make_model(settings.model)
     labels = labels or [b.stem.replace("_", " ") for b in bags]
     runs, results = [], []
     for bag, label in zip(bags, labels):
@@ -48,15 +46,7 @@ def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: lis
         t = run.t if run.final_state is None else np.append(run.t, run.t[-1] + settings.sample_time)
         traces.append(Trace(label, t, run.states_with_final, run.u, run.y_a, union_regions([run]),
                             moving_snapshots(run, settings)))
-    paper_region = model.name == "van_der_pol" and any("x1*x2" in k.replace(" ", "") for k in settings.keep_in)
-    target = runs[0][1].targets[-1].tolist()
-    lo, hi = settings.state_min, settings.state_max
-    target_state = [target[0], 0.0] if model.name == "van_der_pol" else target[:2]
-    phase_portrait(traces, out / "phase_portrait.png", product_bound=2.0 if paper_region else None,
-                   target_state=target_state, xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]),
-                   title=f"Phase portrait from {len(bags)} bag(s)")
-    time_series(traces, out / "time_series.png", state_names=model.state_names, input_names=model.input_names,
-                target=target, title="States, input and y_a from the bag(s)")
+    run_figures(traces, settings, runs[0][1].targets[-1].tolist(), out, f"from {len(bags)} bag(s)")
     certified = [(label, np.arange(len(run.x)), run.certificate["value_function"], run.certificate["violated"])
                  for label, run in runs if run.certificate]
     if certified:

@@ -1,11 +1,21 @@
-"""`replay`: republish a bag with its timing, or re-solve the controller on it offline.
+"""`replay`: republish a bag with its timing, re-solve the controller on it, or rerun its closed loop.
 
     python -m nmpc_avoid_ros replay BAG [--rate 2.0]                       # republish (needs ROS)
     python -m nmpc_avoid_ros replay BAG --resolve [--config FILE] [--mu 0] [--json OUT]
+    python -m nmpc_avoid_ros replay BAG --closed-loop [--config FILE] [--mu X] [--kappa X] [--solver NAME]
+        [--plant euler|continuous] [--json FILE] [--out DIR] [--sweep NAME=V1,V2,...]
 
 `--resolve` feeds the recorded states, targets and regions, sample by sample, to a fresh
 controller built from the configuration (with overrides) and reports how its commands differ from
 the recorded ones: "what would the new tuning have done on yesterday's run".
+
+`--closed-loop` runs the loop again through the plant model from the state of the bag's first
+solved sample, with the bag's timeline of targets, regions and run-time settings (mu, kappa as the
+diagnostics recorded them; a flag overrides one for the whole run), so the states react to the
+new tuning (evaluation/counterfactual.py). It prints the recorded and the counterfactual metrics
+side by side; --json writes the run in simulate's format, --out DIR the overlaid figures and
+metrics.json. --sweep runs one counterfactual per value of a run-time setting: a table (settling,
+penetration, final error, solve times, certificate violations) and one overlaid phase portrait.
 """
 
 from __future__ import annotations
@@ -22,9 +32,11 @@ import numpy as np
 
 from ..bag.analysis import RecordedRun, load_run
 from ..bag.mcap_io import BagError, load_bag
+from ..core.closed_loop import PLANTS
 from ..core.controller import NmpcController
 from ..core.errors import NmpcError
 from ..core.settings import ControllerSettings, default_config_path, load_params_file
+from .replay_closed_loop import closed_loop_main
 
 LATCHED_TOPICS = ("target", "obstacles")
 
@@ -116,13 +128,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("bag", type=Path)
     ap.add_argument("--rate", type=float, default=1.0, help="replay speed factor (republish mode)")
     ap.add_argument("--wait", type=float, default=1.0, help="seconds for discovery before republishing")
-    ap.add_argument("--resolve", action="store_true", help="re-solve the controller offline on the bag")
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--resolve", action="store_true", help="re-solve the controller offline on the bag")
+    mode.add_argument("--closed-loop", action="store_true",
+                      help="rerun the closed loop from the bag's first state under the new tuning")
     ap.add_argument("--config", type=Path, help="params file (default: the shipped van_der_pol.yaml)")
-    ap.add_argument("--mu", type=float, help="override mu for the re-solve")
-    ap.add_argument("--kappa", type=float, help="override kappa for the re-solve")
-    ap.add_argument("--tolerance", type=float, default=1e-6, help="a command differs beyond this")
-    ap.add_argument("--json", type=Path, help="write the step-by-step comparison here")
+    ap.add_argument("--mu", type=float, help="override mu (the whole run)")
+    ap.add_argument("--kappa", type=float, help="override kappa (the whole run)")
+    ap.add_argument("--tolerance", type=float, default=1e-6, help="a command differs beyond this (--resolve)")
+    ap.add_argument("--json", type=Path, help="write the comparison (--resolve) or the run in simulate's format")
+    ap.add_argument("--solver", help="--closed-loop: solver path (structural: a controller of its own)")
+    ap.add_argument("--plant", choices=PLANTS, default="euler", help="--closed-loop: plant model")
+    ap.add_argument("--out", type=Path, help="--closed-loop: figures and metrics.json here")
+    ap.add_argument("--sweep", help="--closed-loop: NAME=V1,V2,... of a run-time setting")
     args = ap.parse_args(argv)
+    if args.closed_loop:
+        return closed_loop_main(args)
+    if args.sweep or args.out or args.solver or args.plant != "euler":
+        print("replay: error: --sweep, --out, --solver and --plant need --closed-loop", file=sys.stderr)
+        return 2
     try:
         if not args.resolve:
             if not args.rate > 0:

@@ -1,0 +1,173 @@
+"""Closed-loop counterfactual replay: a recorded run driven again through the plant model under a new tuning.
+
+From the state of the bag's first solved sample, the one closed-loop driver (core/closed_loop.py)
+runs as many samples as the bag has, with the bag's timeline: the target and the regions in force
+at each recorded sample, and the run-time settings the controller's diagnostics reported (mu,
+kappa), except those the caller overrides. The states now react to the changed controller, unlike
+`replay --resolve`, which re-solves the recorded states one by one.
+
+Moving regions are re-stamped onto the driver's clock (sample k at k Ts): a region stamped at
+recorded time s is stamped s - t_0, with t_0 the controller's time of the first sample.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..bag.analysis import RecordedRun, run_metrics
+from ..core.closed_loop import ClosedLoopRun, run_closed_loop
+from ..core.controller import NmpcController
+from ..core.errors import ConfigError
+from ..core.metrics import max_abs_product, outputs, penetration, time_stats, tracking
+from ..core.models import make_model
+from ..core.regions import Region
+from ..core.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
+from ..core.status import StepStatus
+
+#: the metrics compared side by side (and tabulated by a sweep), in this order
+COMPARED = ("settling_step", "final_error", "max_penetration", "max_abs_x1x2", "solve_ms_median", "solve_ms_max",
+            "fallbacks", "certificate_violations")
+
+
+@dataclass
+class Counterfactual:
+    """One counterfactual run: what changed, the run, its metrics, and its distance to the recording."""
+
+    label: str
+    changes: dict[str, Any]
+    run: ClosedLoopRun
+    metrics: dict[str, Any]
+    #: max |x_counterfactual(k) - x_recorded(k)| over the recorded states (k = 0..K, or K-1 without a final state)
+    max_state_error: float
+
+
+def sweepable(name: str) -> None:
+    """ConfigError unless `name` is a scalar numeric run-time setting (what a sweep may vary)."""
+    if name not in SETTINGS:
+        raise ConfigError(f"--sweep: unknown setting {name!r}; run-time settings: {', '.join(sorted(RUNTIME_FIELDS))}")
+    if name not in RUNTIME_FIELDS:
+        raise ConfigError(f"--sweep: {name} is structural (it changes the NLP, a new controller per value): "
+                          f"sweep a run-time setting ({', '.join(sorted(RUNTIME_FIELDS))})")
+    if SETTINGS[name].kind not in ("float", "int"):
+        raise ConfigError(f"--sweep: {name} is not a single number ({SETTINGS[name].kind})")
+
+
+def parse_sweep(text: str) -> tuple[str, list[float]]:
+    """'NAME=V1,V2,...' -> (NAME, values); ConfigError for a malformed text or a setting that cannot be swept."""
+    name, sep, values = text.partition("=")
+    name = name.strip()
+    if not sep or not values.strip():
+        raise ConfigError(f"--sweep needs NAME=V1,V2,..., got {text!r}")
+    sweepable(name)
+    try:
+        parsed = [float(v) for v in values.split(",")]
+    except ValueError:
+        raise ConfigError(f"--sweep {name}: values must be numbers, got {values!r}") from None
+    for value in parsed:  # checked against the setting's declaration (range, finiteness)
+        SETTINGS[name].coerce(int(value) if SETTINGS[name].kind == "int" and value.is_integer() else value)
+    return name, parsed
+
+
+def restamped(regions: Sequence[Region], t0: float) -> tuple[Region, ...]:
+    """Moving regions with their stamps moved from the recording's clock to the driver's (t0 -> 0)."""
+    return tuple(dataclasses.replace(r, stamp=r.stamp - t0) if r.moving else r for r in regions)
+
+
+def schedules(run: RecordedRun) -> tuple[Callable[[int], np.ndarray], Callable[[int], tuple[Region, ...] | None]]:
+    """The bag's target and region timelines as the driver's schedules (regions: None when unchanged)."""
+    t0 = float(run.times[0]) if run.times is not None and len(run.times) else 0.0
+
+    def target(k: int) -> np.ndarray:
+        return run.targets[k]
+
+    def regions(k: int) -> tuple[Region, ...] | None:
+        if k > 0 and run.regions[k] == run.regions[k - 1]:
+            return None
+        return restamped(run.regions[k], t0)
+
+    return target, regions
+
+
+class ScheduledController(NmpcController):
+    """NmpcController whose run-time settings follow a per-sample schedule (applied before each step)."""
+
+    def __init__(self, settings: ControllerSettings, schedule: Callable[[int], dict[str, Any]]) -> None:
+        super().__init__(settings)
+        self.schedule = schedule
+        self.samples = 0
+
+    def step(self, *args: Any, **kwargs: Any) -> Any:
+        changes = {k: v for k, v in self.schedule(self.samples).items() if getattr(self.settings, k) != v}
+        if changes:
+            self.update_settings(**changes)
+        self.samples += 1
+        return super().step(*args, **kwargs)
+
+
+def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: str = "euler",
+                       overrides: dict[str, Any] | None = None, label: str = "counterfactual") -> Counterfactual:
+    """Drive the recorded run's timeline again from its first state under `settings` + `overrides`.
+
+    The run-time settings the bag recorded per sample (RecordedRun.parameters) are replayed as they
+    changed, except the overridden ones, which hold for the whole run.
+    """
+    overrides = dict(overrides or {})
+    recorded = {k: v for k, v in run.parameters.items() if k not in overrides}
+    base = settings.replace(**overrides, **{k: float(v[0]) for k, v in recorded.items()})
+
+    def schedule(k: int) -> dict[str, Any]:
+        return {name: float(values[min(k, len(values) - 1)]) for name, values in recorded.items()}
+
+    controller = ScheduledController(base, schedule)
+    target, regions = schedules(run)
+    result = run_closed_loop(controller, run.x[0], target, len(run.x), plant, regions)
+    reference = run.states_with_final
+    count = min(len(reference), len(result.x))
+    error = float(np.max(np.abs(result.x[:count] - reference[:count])))
+    return Counterfactual(label, overrides, result, loop_metrics(result, base), error)
+
+
+def loop_metrics(run: ClosedLoopRun, settings: ControllerSettings) -> dict[str, Any]:
+    """COMPARED metrics of a driven run (definitions: core/metrics.py), the target being the last one."""
+    model = make_model(settings.model)
+    y = outputs(model, run.x, run.u)
+    target = run.targets[-1]
+    out: dict[str, Any] = dict.fromkeys(COMPARED)
+    if np.all(np.isfinite(target)):
+        out.update({k: v for k, v in tracking(y, target, run.sample_time).items() if k in COMPARED})
+    out["max_penetration"] = penetration(settings, model, run.x, run.u, run.regions, y)["max_penetration"]
+    if model.n >= 2:
+        out["max_abs_x1x2"] = max_abs_product(run.x)
+    stats = time_stats(run.solve_time * 1e3)
+    out["solve_ms_median"], out["solve_ms_max"] = stats["median"], stats["max"]
+    out["fallbacks"] = sum(StepStatus(s).is_fallback for s in run.status)
+    out["certificate_violations"] = sum(bool(c["violated"]) for c in run.certificate)
+    return out
+
+
+def recorded_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any]:
+    """The same COMPARED metrics of the recording (bag/analysis.run_metrics)."""
+    m = run_metrics(run, settings)
+    out = {k: m.get(k) for k in COMPARED}
+    out["solve_ms_median"], out["solve_ms_max"] = m["solve_ms"]["median"], m["solve_ms"]["max"]
+    return out
+
+
+def metrics_table(rows: Sequence[tuple[str, dict[str, Any]]]) -> str:
+    """A markdown table: one row per (label, metrics), the COMPARED columns."""
+    def cell(v: Any) -> str:
+        if v is None:
+            return "-"
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else f"{v:.4g}"
+        return str(v)
+
+    lines = ["| run | " + " | ".join(COMPARED) + " |", "|---" * (len(COMPARED) + 1) + "|"]
+    lines += [f"| {label} | " + " | ".join(cell(m.get(k)) for k in COMPARED) + " |" for label, m in rows]
+    return "\n".join(lines)

@@ -1,0 +1,104 @@
+"""`replay BAG --closed-loop`: the counterfactual closed loop of a bag, its figures and sweeps (see replay.py)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..bag.analysis import RecordedRun, load_run
+from ..bag.figures import Trace, phase_portrait, run_figures, value_function_plot
+from ..bag.mcap_io import BagError
+from ..core.errors import NmpcError
+from ..core.settings import ControllerSettings, default_config_path, load_params_file
+from ..evaluation.counterfactual import (
+    Counterfactual,
+    metrics_table,
+    parse_sweep,
+    recorded_metrics,
+    replay_closed_loop,
+)
+
+
+def recorded_trace(run: RecordedRun, label: str = "recorded") -> Trace:
+    t = np.arange(len(run.states_with_final)) * run.sample_time
+    return Trace(label, t, run.states_with_final, run.u, run.y_a)
+
+
+def counterfactual_trace(cf: Counterfactual) -> Trace:
+    return Trace(cf.label, np.arange(len(cf.run.x)) * cf.run.sample_time, cf.run.x, cf.run.u, cf.run.y_a)
+
+
+def write_outputs(out: Path, run: RecordedRun, settings: ControllerSettings, runs: list[Counterfactual],
+                  report: dict[str, Any]) -> None:
+    """OUT/phase_portrait.png, time_series.png, value_function.png (one run) or sweep.png, metrics.json, sweep.md."""
+    out.mkdir(parents=True, exist_ok=True)
+    traces = [recorded_trace(run)] + [counterfactual_trace(cf) for cf in runs]
+    target = run.targets[-1].tolist()
+    if len(runs) == 1:
+        run_figures(traces, settings, target, out, "recorded vs counterfactual")
+        series = [(cf.label, np.arange(len(cf.run.certificate)),
+                   np.array([c["value_function"] for c in cf.run.certificate], dtype=float),
+                   np.array([bool(c["violated"]) for c in cf.run.certificate])) for cf in runs]
+        if run.certificate:
+            series.insert(0, ("recorded", np.arange(len(run.x)), run.certificate["value_function"],
+                              run.certificate["violated"]))
+        value_function_plot(series, out / "value_function.png")
+    else:
+        lo, hi = settings.state_min, settings.state_max
+        phase_portrait(traces, out / "sweep.png", product_bound=2.0 if settings.model == "van_der_pol" else None,
+                       xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), title="Counterfactual sweep")
+        (out / "sweep.md").write_text(report["table"] + "\n")
+    (out / "metrics.json").write_text(json.dumps(report, indent=2))
+
+
+def closed_loop_main(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
+    try:
+        params = load_params_file(args.config or default_config_path()).section("controller")
+        if args.solver is not None:
+            params["solver"] = args.solver
+        settings = ControllerSettings.from_params(params)
+        overrides = {k: v for k, v in (("mu", args.mu), ("kappa", args.kappa)) if v is not None}
+        sweep = parse_sweep(args.sweep) if args.sweep else None
+        settings.replace(**overrides)  # validated before the bag is read
+        run = load_run(args.bag, settings=settings)
+        if sweep is None:
+            variants = [("counterfactual", overrides)]
+        else:
+            name, values = sweep
+            variants = [(f"{name}={v:g}", {**overrides, name: v}) for v in values]
+        runs = [replay_closed_loop(run, settings, args.plant, changes, label) for label, changes in variants]
+    except (BagError, NmpcError) as exc:
+        print(f"replay: error: {exc}", file=sys.stderr)
+        return 1
+    recorded = recorded_metrics(run, settings)
+    rows = [("recorded", recorded)] + [(cf.label, cf.metrics) for cf in runs]
+    table = metrics_table(rows)
+    seconds = time.perf_counter() - started
+    partial = "" if run.finished else f" (the file was not finished: {len(run.x)} samples recovered, replayed)"
+    print(table)
+    for cf in runs:
+        print(f"replay --closed-loop: {cf.label}: {len(cf.run.u)} samples on the {args.plant} plant from "
+              f"x0 = {run.x[0].tolist()}; max |x - x_recorded| {cf.max_state_error:.3g}")
+    print(f"replay --closed-loop: {len(runs)} run(s) in {seconds:.1f} s{partial}")
+    report = {"bag": str(args.bag), "finished": run.finished, "plant": args.plant, "seconds": seconds,
+              "recorded": recorded, "table": table,
+              "runs": [{"label": cf.label, "changes": cf.changes, "metrics": cf.metrics,
+                        "max_state_error": cf.max_state_error} for cf in runs]}
+    if args.json:
+        cf = runs[0]
+        doc = {**cf.run.to_json(), "summary": cf.metrics, "replay": {k: v for k, v in report.items() if k != "runs"}}
+        doc["replay"].update(changes=cf.changes, max_state_error=cf.max_state_error)
+        if len(runs) > 1:
+            doc["sweep"] = [{**r.run.to_json(), "label": r.label, "summary": r.metrics} for r in runs]
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc))
+    if args.out:
+        write_outputs(args.out, run, settings, runs, report)
+    return 0
