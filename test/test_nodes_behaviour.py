@@ -173,6 +173,11 @@ def test_param_set_of_mu_and_kappa_takes_effect_at_the_next_sample_and_bad_value
     assert diag["kappa"] == "5000" and diag["mu"] == "1e+08"  # -p overrides the params file
     client = AsyncParameterClient(p.node, "controller")
     assert client.wait_for_services(10)
+    described = client.describe_parameters(["mu", "horizon", "max_iterations"])
+    assert listen.spin_until(described.done, 10)
+    mu, horizon, budget = described.result().descriptors  # as declared in core/settings.py
+    assert not mu.read_only and mu.floating_point_range[0].from_value == 0.0
+    assert horizon.read_only and budget.read_only and horizon.integer_range[0].to_value == 2000
 
     def set_params(*params: Parameter):
         future = client.set_parameters(list(params))
@@ -324,10 +329,15 @@ def test_help_and_bad_configuration_exit_codes(command, ros_graph):
     res = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", command, "--help"], env=env, capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0 and "ros-args" in res.stdout
-    bad = "horizon:=0" if command == "controller" else "initial_state:=[1.0]"
-    res = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", command, *PARAMS, "-p", bad], env=env,
-                         capture_output=True, text=True, timeout=60)
-    assert res.returncode == 2 and "configuration error" in res.stderr and "Traceback" not in res.stderr
+    # controller: out of the declared ROS range, the wrong ROS type (an integer for a double), refused by
+    # the core declaration (a node setting) -- each one line naming the parameter
+    bads = ("horizon:=0", "mu:=0", "stale_behavior:=panic", "safe_input:=[9.0]") if command == "controller" \
+        else ("initial_state:=[1.0]",)
+    for bad in bads:
+        res = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", command, *PARAMS, "-p", bad], env=env,
+                             capture_output=True, text=True, timeout=60)
+        assert res.returncode == 2 and "configuration error" in res.stderr and "Traceback" not in res.stderr, bad
+        assert bad.split(":=")[0] in res.stderr.strip().splitlines()[-1], res.stderr
 
 
 def test_mobile_robot_reaches_its_goal_among_obstacles_published_as_markers(ros_graph):

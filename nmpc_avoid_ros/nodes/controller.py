@@ -144,10 +144,10 @@ class ControllerNode(LifecycleNode):
         self.target: np.ndarray | None = None
         if self.options.target is not None:
             self.target = np.asarray(finite_vector(self.options.target, self.p, "target"))
+        self.controller = controller  # _safe_input checks against its input box
         self.safe_input = self._safe_input(self.options)
         controller.set_safe_input(self.safe_input)  # also a fallback candidate
         self.lockstep = self.options.lockstep  # read-only: fixed for the node's life
-        self.controller = controller
         self.certificate = StabilityCertificate(controller)
         self.last_certificate: CertificateSample | None = None
         self.reset_loop()
