@@ -177,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", type=Path, help="run a scene file instead (real time; see tools/scene_demo.py)")
     ap.add_argument("--predict-obstacles", choices=("on", "off"), help="with --scene: predict moving obstacles")
     ap.add_argument("--obstacle-rate", type=float, default=10.0, help="with --scene: markers per second")
+    ap.add_argument("--mu", type=float, help="with --scene: avoidance weight override")
+    ap.add_argument("--solver", help="with --scene: solver path override")
     ap.add_argument("--estimate-velocity", action="store_true",
                     help="with --scene: markers without velocity, the controller estimates it from their stamps")
     args = ap.parse_args(argv)
@@ -202,12 +204,14 @@ def _scene_main(args: argparse.Namespace) -> int:
     predict = None if args.predict_obstacles is None else args.predict_obstacles == "on"
     try:
         report = run_scene_demo(args.scene, args.out, predict, max(args.timeout, 60.0), args.obstacle_rate,
-                                not args.estimate_velocity)
+                                not args.estimate_velocity, {"mu": args.mu, "solver": args.solver})
     except NmpcError as exc:
         print(f"demo: error: {exc}", file=sys.stderr)
         return 1
     (bag,) = report["bags"]
-    print(f"demo: {args.scene}: max penetration {bag['max_penetration']:.4g}, min clearance "
-          f"{bag['min_clearance']:.4g}, solve median {bag['solve_ms']['median']:.1f} ms; wrote {args.out}/scene.mcap, "
-          "metrics.json, phase_portrait.png, time_series.png")
+    clearance = bag["min_clearance_obstacles"]
+    print(f"demo: {args.scene}: obstacle clearance {'n/a' if clearance is None else format(clearance, '.4g')} "
+          f"(penetration {bag['max_penetration_obstacles']:.4g}; keep-in {bag['max_penetration_keep_in']:.4g}), "
+          f"solve median {bag['solve_ms']['median']:.1f} ms; wrote {args.out}/scene.mcap, metrics.json, "
+          "phase_portrait.png, time_series.png")
     return 0

@@ -18,6 +18,7 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -33,10 +34,12 @@ RECORDED_TYPES = ["state=std_msgs/msg/Float64MultiArray", "command=std_msgs/msg/
                   "/diagnostics=diagnostic_msgs/msg/DiagnosticArray", "controller/prediction=nav_msgs/msg/Path"]
 
 
-def scene_params(scene: Scene, predict: bool | None, out: Path) -> Path:
-    """DIR/params.yaml: the scene's config, its controller overrides, predict_obstacles and the plant's x0."""
+def scene_params(scene: Scene, predict: bool | None, out: Path, overrides: dict[str, Any] | None = None) -> Path:
+    """DIR/params.yaml: the scene's config, its controller overrides, then `overrides` (None values
+    skipped), predict_obstacles, and the plant's x0."""
     params = load_params_file(scene.config)
-    controller = {**params.section("controller"), **scene.controller}
+    controller = {**params.section("controller"), **scene.controller,
+                  **{k: v for k, v in (overrides or {}).items() if v is not None}}
     if predict is not None:
         controller["predict_obstacles"] = predict
     plant = {**params.section("plant"), "initial_state": [float(v) for v in scene.x0], "integration": "continuous"}
@@ -50,7 +53,7 @@ def scene_params(scene: Scene, predict: bool | None, out: Path) -> Path:
 
 
 def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, timeout: float = 300.0,
-                   rate: float = 10.0, explicit_velocity: bool = True) -> dict:
+                   rate: float = 10.0, explicit_velocity: bool = True, overrides: dict[str, Any] | None = None) -> dict:
     """Run the scene through DDS; returns the analysis report (metrics of the bag) with the scene's name."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -61,7 +64,7 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
 
     scene = load_scene(scene_path)
     out.mkdir(parents=True, exist_ok=True)
-    params = scene_params(scene, predict, out)
+    params = scene_params(scene, predict, out, overrides)
     bag = (out / "scene.mcap").resolve()
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
