@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import json
+import os
+import shutil
 import subprocess
 import sys
 import time
@@ -35,7 +38,7 @@ def demo_out(tmp_path_factory):
 
 def test_demo_leaves_bags_metrics_and_figures(demo_out):
     for name in ("with_avoidance.mcap", "without_avoidance.mcap", "metrics.json", "phase_portrait.png",
-                 "time_series.png"):
+                 "time_series.png", "value_function.png", "report.html"):
         assert (demo_out / name).stat().st_size > 1000, name
 
 
@@ -215,3 +218,64 @@ def test_replay_republishes_the_recorded_topics_with_their_timing(demo_out, ros_
     # rate 0.5: the republished stream takes about twice as long as the recording
     assert (got[-1][0] - got[0][0]) == pytest.approx(2 * span, rel=0.3, abs=0.1)
     assert replay.proc.wait(60) == 0 and "published" in replay.output()
+
+
+def chromium() -> str:
+    """Debian's chromium; a visible skip where there is none, a failure in CI (.ci/run installs it)."""
+    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    if path:
+        return path
+    if os.environ.get("CI"):
+        pytest.fail("chromium is missing in CI (.ci/run installs Debian's chromium)")
+    pytest.skip("no chromium on this machine: `apt-get install chromium` to run the HTML report's browser test")
+
+
+def red_pixels(png: bytes) -> np.ndarray:
+    """Mask of the prediction's red (#d62728) in a screenshot."""
+    from matplotlib.image import imread
+
+    rgb = (imread(io.BytesIO(png))[:, :, :3] * 255).astype(int)
+    return (np.abs(rgb[:, :, 0] - 214) < 30) & (rgb[:, :, 1] < 80) & (rgb[:, :, 2] < 80)
+
+
+def test_html_report_of_the_demo_bags_is_self_contained_renders_and_scrubs_in_headless_chromium(demo_out, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    page_file = tmp_path / "report.html"
+    res = cli("analyze", str(demo_out / "with_avoidance.mcap"), str(demo_out / "without_avoidance.mcap"),
+              "--out", str(tmp_path / "o"), "--html", str(page_file))
+    assert res.returncode == 0, res.stderr
+    text = page_file.read_text()
+    assert page_file.stat().st_size < 5e6
+    assert "<script src" not in text and "<link" not in text and "http://" not in text and "https://" not in text
+    executable = chromium()
+    offline = load_run(demo_out / "with_avoidance.mcap")
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=executable, args=["--no-sandbox"])
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.route("**/*", lambda route: route.abort() if not route.request.url.startswith("file:")
+                       else route.continue_())  # offline: any network request would fail the page
+            page.goto(page_file.as_uri())
+            page.wait_for_function("window.reportReady === true", timeout=15000)
+            plane = page.locator("#plane")
+            first = plane.screenshot()
+            assert red_pixels(first).sum() > 100  # the plan of sample 0 is drawn
+            assert page.evaluate("window.report.k") == 0
+            page.focus("#scrub")
+            for _ in range(12):
+                page.keyboard.press("ArrowRight")
+            drawn = page.evaluate("window.report")
+            assert drawn["k"] == 12
+            # the drawn plan is the one the controller published at sample 12, from the state it measured
+            np.testing.assert_allclose(drawn["prediction"][0], offline.x[12], rtol=1e-6)
+            assert len(drawn["prediction"]) == 6
+            later = plane.screenshot()
+            assert red_pixels(later).sum() > 100 and (red_pixels(later) != red_pixels(first)).sum() > 100
+            page.select_option("#run", "1")  # the other bag
+            assert page.evaluate("window.report.run") == 1
+            assert errors == []
+        finally:
+            browser.close()

@@ -54,6 +54,8 @@ class RecordedRun:
     certificate: dict[str, np.ndarray] = field(default_factory=dict)
     #: the run-time settings the diagnostics report per sample (RECORDED_PARAMETERS -> [K])
     parameters: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the plan's cost terms per sample (COST_KEYS -> [K], 6 significant digits as the diagnostics carry them)
+    costs: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -69,6 +71,8 @@ class RecordedRun:
         return tuple(r.at(t) if r.moving else r for r in regions)
 
 
+#: the cost terms of the applied plan in the controller's diagnostics
+COST_KEYS = ("offset_cost", "avoidance_cost", "tracking_cost")
 #: run-time settings whose value in force the controller's diagnostics carry at every sample
 RECORDED_PARAMETERS = ("mu", "kappa")
 #: diagnostic keys of the certificate (nodes/controller.py)
@@ -167,6 +171,7 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         certificate=_certificate([v for _, v in samples]),
         parameters={key: np.array([float(v[key]) for _, v in samples]) for key in RECORDED_PARAMETERS
                     if all(key in v for _, v in samples)},
+        costs={key: np.array([float(v.get(key, "nan")) for _, v in samples]) for key in COST_KEYS},
     )
 
 

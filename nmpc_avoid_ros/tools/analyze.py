@@ -21,13 +21,17 @@ import numpy as np
 
 from ..bag.analysis import load_run, moving_snapshots, run_metrics, union_regions
 from ..bag.figures import Trace, run_figures, value_function_plot
-from ..bag.mcap_io import BagError
+from ..bag.mcap_io import BagError, load_bag
+from ..bag.report import report_data
+from ..bag.report_page import write_report
 from ..core.errors import NmpcError
 from ..core.settings import ControllerSettings, default_config_path, load_params_file
 
 
-def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: list[str] | None = None) -> dict:
-    """Read every bag, write DIR/metrics.json, phase_portrait.png and time_series.png."""
+def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: list[str] | None = None,
+            html: Path | None = None) -> dict:
+    """Read every bag, write DIR/metrics.json, phase_portrait.png, time_series.png, value_function.png;
+    with `html`, also the self-contained report page there (bag/report_page.py)."""
     config = config or default_config_path()
     settings = ControllerSettings.from_params(load_params_file(config).section("controller"))
     labels = labels or [b.stem.replace("_", " ") for b in bags]
@@ -51,6 +55,9 @@ def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: lis
                  for label, run in runs if run.certificate]
     if certified:
         value_function_plot(certified, out / "value_function.png")
+    if html is not None:
+        pages = [report_data(run, load_bag(bag), settings, label) for bag, (label, run) in zip(bags, runs)]
+        write_report(html, pages, f"nmpc_avoid_ros report: {', '.join(labels)}")
     report = {"config": str(config), "bags": results}
     (out / "metrics.json").write_text(json.dumps(report, indent=2))
     return report
@@ -62,12 +69,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="output directory")
     ap.add_argument("--config", type=Path, help="params file of the runs (default: the shipped van_der_pol.yaml)")
     ap.add_argument("--labels", nargs="+", help="legend labels, one per bag")
+    ap.add_argument("--html", type=Path, help="also write one self-contained HTML report here (scrub through samples)")
     args = ap.parse_args(argv)
     if args.labels and len(args.labels) != len(args.bags):
         print("analyze: error: give one label per bag", file=sys.stderr)
         return 2
     try:
-        report = analyze(args.bags, args.out, args.config, args.labels)
+        report = analyze(args.bags, args.out, args.config, args.labels, args.html)
     except (BagError, NmpcError) as exc:
         print(f"analyze: error: {exc}", file=sys.stderr)
         return 1
@@ -78,5 +86,6 @@ def main(argv: list[str] | None = None) -> int:
                  if r["certificate_checked"] is not None else "no certificate in the bag")
               + ("" if r["finished"] else " (file not finished)"))
     print(f"analyze: wrote {args.out}/metrics.json, phase_portrait.png, time_series.png"
-          + (", value_function.png" if (args.out / "value_function.png").exists() else ""))
+          + (", value_function.png" if (args.out / "value_function.png").exists() else "")
+          + (f"; report {args.html} ({args.html.stat().st_size / 1e3:.0f} kB)" if args.html else ""))
     return 0

@@ -161,7 +161,7 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
               f"solve median {summary['solve_ms_median']:.1f} ms", flush=True)
     # the figures and metrics come from the bags, as a user would make them
     bags = [out / f"{name}.mcap" for name, _ in RUNS]
-    report = analyze(bags, out, config, labels=labels)
+    report = analyze(bags, out, config, labels=labels, html=out / "report.html")
     metrics["bags"] = report["bags"]
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics

@@ -136,7 +136,7 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
         names = [p.command for p in reversed(procs)]
         raise NmpcError(f"a node did not exit cleanly: exit codes {dict(zip(names, codes))}")
     label = f"{Path(scene_path).stem} (prediction {'off' if predict is False else 'on'})"
-    report = analyze([bag], out, params, labels=[label])
+    report = analyze([bag], out, params, labels=[label], html=out / "report.html")
     report["scene"] = str(scene_path)
     (out / "metrics.json").write_text(json.dumps(report, indent=2))
     return report
