@@ -93,6 +93,8 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "penetration_after_first_step_avoidable_start": _max([r["penetration_after_first_step"] for r in feasible_start
                                                              if not r.get("unavoidable_at_start", False)]),
         "fallback_penetration": _max([r["fallback_penetration"] for r in finished]),
+        "fallback_penetration_avoidable_start": _max([r["fallback_penetration"] for r in feasible_start
+                                                     if not r.get("unavoidable_at_start", False)]),
         "escapes_tried": sum(r["escapes_tried"] for r in records),
         "escapes_taken": sum(r["escapes_taken"] for r in records),
         "runs_with_escape_taken": sum(r["escapes_taken"] > 0 for r in records),
@@ -153,7 +155,7 @@ DEFINITIONS = {
     "unavoidable_at_start": "x0 in X_N, but the least-violating input of sample 0 (plan, safe input or recovery "
                             "solve) still predicts a violation over 1e-3: a region cannot be avoided from x0 "
                             "(X_N has the hard constraints only); penetration_after_first_step_avoidable_start "
-                            "leaves these runs out",
+                            "and fallback_penetration_avoidable_start leave these runs (and x0 outside X_N) out",
     "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/candidates.py); "
                "escapes_taken: samples whose plan came from one",
     "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
