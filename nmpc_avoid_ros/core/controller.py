@@ -18,7 +18,7 @@ import numpy as np
 from .candidates import EscapeGuesses, Solution, lowest_cost, plan_cost
 from .errors import ConfigError, InputError
 from .fallback import VIOLATION_TOLERANCE, FallbackSelector
-from .models import Model
+from .models import Model, make_model
 from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase, TrackingNlp
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
@@ -36,6 +36,11 @@ def make_nlp(settings: ControllerSettings, model: Model | None = None) -> NlpBas
     """The formulation of the settings' solver path: multiple shooting (ipopt) or stage-wise."""
     if settings.solver == "ipopt":
         return TrackingNlp(settings, model)
+    model = model or make_model(settings.model)
+    if model.steady_state is None:
+        # the stage-wise paths carry y_a as a state and need x_a = g_x(y_a) in closed form
+        raise ConfigError(f"solver {settings.solver!r} needs a closed-form steady state, which model "
+                          f"{model.name!r} has not (its heading at rest is free): use solver 'ipopt'")
     return StagewiseNlp(settings, model)
 
 
@@ -420,7 +425,7 @@ class NmpcController:
         plan = self._plan
         if plan is None:
             y_a = np.asarray(y_t, float)
-            x_a, u_a = self._steady_of(y_a)
+            x_a, u_a = self._steady_of(y_a, x)
             x_a = np.clip(x_a, self.settings.state_min, self.settings.state_max)
             u_a = np.clip(u_a, self._input_lo, self._input_hi)
             ramp = np.linspace(0, 1, N + 1)[1:, None]
@@ -438,10 +443,13 @@ class NmpcController:
         lam_x, lam_g = self.nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
         return w0, lam_x, lam_g
 
-    def _steady_of(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _steady_of(self, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A steady state of output y (closed form, else the model's guess near x, else zeros)."""
         if self.model.steady_state is not None:
             x_s, u_s = self.model.steady_state(y)
             return np.asarray(x_s, float).ravel(), np.asarray(u_s, float).ravel()
+        if self.model.steady_guess is not None:
+            return self.model.steady_guess(np.asarray(y, float), np.asarray(x, float))
         return np.zeros(self.model.n), np.zeros(self.model.m)
 
     def set_safe_input(self, u: Sequence[float]) -> None:

@@ -32,6 +32,8 @@ class Model:
             written with CasADi operations so they work on symbols; None means the equilibrium is
             imposed as constraints (paper eq. 8e-8f).
         default_plane: the two state indices that obstacle markers in the `state` frame map to.
+        steady_guess: optional numeric (y_s[p], x[n]) -> (x_s[n], u_s[m]), a steady state near the
+            measured x for the first initial guess of a model without closed-form maps.
     """
 
     name: str
@@ -42,6 +44,7 @@ class Model:
     output: ca.Function
     steady_state: Callable[[ca.MX | ca.SX], tuple[ca.MX | ca.SX, ca.MX | ca.SX]] | None = None
     default_plane: tuple[int, int] = (0, 1)
+    steady_guess: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
 
     @property
     def n(self) -> int:
@@ -134,9 +137,36 @@ def double_integrator_2d(drag: float = 0.5) -> Model:
     )
 
 
+def unicycle() -> Model:
+    """Differential-drive robot as a unicycle.
+
+    State [x, y, theta] (m, m, rad; theta unwrapped, not limited to [-pi, pi]), input [v, omega]
+    (m/s, rad/s), output the position [x, y]. x' = v cos theta, y' = v sin theta, theta' = omega.
+    Steady states: v = 0, omega = 0 and any (x, y, theta): the heading at rest is free, so there
+    is no closed-form g_x(y). The NLP then keeps x_a, u_a as decision variables tied by
+    f(x_a, u_a) = 0, y_a = h(x_a) (paper eq. 8e-8f), which leaves theta_a free: the controller
+    parks with whatever heading its plan arrives in, instead of turning on the spot to a heading
+    nobody asked for (docs/design.md, "unicycle").
+    """
+    dyn, hout = _functions(
+        "unicycle",
+        3,
+        2,
+        lambda x, u: ca.vertcat(u[0] * ca.cos(x[2]), u[0] * ca.sin(x[2]), u[1]),
+        lambda x, u: x[0:2],
+    )
+
+    def near_rest(y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([y[0], y[1], x[2]], float), np.zeros(2)
+
+    return Model("unicycle", ("x", "y", "theta"), ("v", "omega"), ("px", "py"), dyn, hout, None, (0, 1),
+                 steady_guess=near_rest)
+
+
 MODELS: dict[str, Callable[[], Model]] = {
     "van_der_pol": van_der_pol,
     "double_integrator_2d": double_integrator_2d,
+    "unicycle": unicycle,
 }
 
 

@@ -173,6 +173,8 @@ def _yaml_number(spec: Setting, value: Any) -> Any:
 
 #: how the controller node commands while the state is stale or missing
 STALE_BEHAVIORS = ("hold_steady", "zero", "safe_input", "last")
+#: how the controller node talks to the plant (nodes/controller_io.py)
+INTERFACES = ("array", "robot")
 
 
 @dataclass(frozen=True)
@@ -198,6 +200,14 @@ class NodeSettings:
                                   low=0.0, high=3600.0)
     autostart: bool = setting(True, "walk the lifecycle to active at start-up (false: wait for a lifecycle "
                                     "manager's configure and activate)")
+    interface: str = setting("array", "plant interface: array (Float64MultiArray on state/command) or robot "
+                                      "(Odometry on odom, TwistStamped/Twist on cmd_vel, PoseStamped on goal_pose)",
+                             choices=INTERFACES)
+    cmd_vel_stamped: bool = setting(True, "robot interface: command geometry_msgs/TwistStamped (as Jazzy's "
+                                          "diff_drive_controller expects) instead of Twist")
+    odom_frame: str = setting("odom", "robot interface: the frame of odometry poses and goals (REP 105); obstacle "
+                                      "markers in it are positions; everything drawn is in it")
+    base_frame: str = setting("base_link", "robot interface: child_frame_id of the odometry and frame of cmd_vel")
     deactivate_command: str = setting("zero", "the one command published when an active controller is "
                                               "deactivated or shut down", runtime=True, choices=STALE_BEHAVIORS)
 

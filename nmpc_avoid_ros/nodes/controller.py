@@ -48,18 +48,18 @@ import traceback
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Path
+from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
-from visualization_msgs.msg import MarkerArray
+from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.certificate import LAYOUT, CertificateSample, StabilityCertificate
 from ..core.controller import NmpcController, StepResult
 from ..core.errors import ConfigError, InputError, NmpcError
 from ..core.settings import NODE_SETTINGS, SETTINGS, NodeSettings
-from ..ros.conversions import array_to_vector, vector_to_array
+from ..ros.conversions import array_to_vector
 from ..ros.markers import RegionStore
 from ..ros.parameters import (
     STREAM_QOS,
@@ -71,6 +71,8 @@ from ..ros.parameters import (
     settings_specs,
 )
 from ..ros.qos import LatchedSubscription
+from ..ros.visualization import prediction_path, regions_markers, stats_array, steady_state_marker, target_marker
+from .controller_io import INTERFACES
 from .runner import run_node
 
 #: the node's own parameters (declared in core/settings.py NodeSettings)
@@ -135,10 +137,12 @@ class ControllerNode(LifecycleNode):
         model = controller.model
         self.n, self.m, self.p = model.n, model.m, model.p
         s = controller.settings
+        self.io = INTERFACES[self.options.interface](self, model, self.options)  # ConfigError: wrong model
         self.store = RegionStore(max_ellipses=s.max_ellipses, max_polygons=s.max_polygons,
                                  max_polygon_vertices=s.max_polygon_vertices,
                                  output_frame_available=controller.nlp.output_frame_available,
-                                 max_speed=s.max_obstacle_speed, max_stamp_skew=s.max_obstacle_stamp_skew)
+                                 max_speed=s.max_obstacle_speed, max_stamp_skew=s.max_obstacle_stamp_skew,
+                                 frame_aliases=self.io.marker_frame_aliases)
         self.last_obstacle_issue = ""
         self.regions_revision = self.store.revision
         self.target: np.ndarray | None = None
@@ -158,13 +162,19 @@ class ControllerNode(LifecycleNode):
         self.max_state_gap = 0.0  # s, longest interval between two good states
         self.last_stale = 0.0  # s, length of the last stale episode that ended
 
-        self.pub_command = self.create_publisher(Float64MultiArray, "command", STREAM_QOS)
+        self.last_rejected = ""
         self.pub_prediction = self.create_publisher(Path, "~/prediction", STREAM_QOS)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
+        self.pub_regions = self.create_publisher(MarkerArray, "~/regions", STREAM_QOS)
+        self.pub_steady_state = self.create_publisher(Marker, "~/steady_state", STREAM_QOS)
+        self.pub_target = self.create_publisher(Marker, "~/target_marker", STREAM_QOS)
+        self.pub_stats = self.create_publisher(Float64MultiArray, "~/stats", STREAM_QOS)
         self.latched_inputs = [LatchedSubscription(self, Float64MultiArray, "target", self.on_target),
                                LatchedSubscription(self, MarkerArray, "obstacles", self.on_obstacles)]
         self.pub_certificate = self.create_publisher(Float64MultiArray, "~/certificate", STREAM_QOS)
         self.certificate_layout = [MultiArrayDimension(label=",".join(LAYOUT), size=len(LAYOUT), stride=len(LAYOUT))]
+        if self.io.goal_type is not None:
+            self.latched_inputs.append(LatchedSubscription(self, self.io.goal_type, "goal_pose", self.on_goal))
         self.get_logger().info(
             f"controller ready: model={s.model} N={s.horizon} Ts={s.sample_time}s {s.discretization} "
             f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
@@ -187,7 +197,8 @@ class ControllerNode(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start the state subscription and the samples (timer, or each state in lockstep)."""
         self.reset_loop()
-        self.state_subscription = self.create_subscription(Float64MultiArray, "state", self.on_state, STREAM_QOS)
+        self.state_subscription = self.create_subscription(self.io.state_type, self.io.state_topic, self.on_state,
+                                                           STREAM_QOS)
         if not self.lockstep:
             self.timer = self.create_timer(self.controller.settings.sample_time, self.on_sample)
         self.active = True
@@ -229,7 +240,9 @@ class ControllerNode(LifecycleNode):
             return
         for latched in self.latched_inputs:
             latched.destroy()
-        for publisher in (self.pub_command, self.pub_prediction, self.pub_diagnostics, self.pub_certificate):
+        self.io.destroy()
+        for publisher in (self.pub_prediction, self.pub_diagnostics, self.pub_certificate, self.pub_regions,
+                          self.pub_steady_state, self.pub_target, self.pub_stats):
             self.destroy_publisher(publisher)
         self.latched_inputs = []
         self.controller = None
@@ -247,13 +260,14 @@ class ControllerNode(LifecycleNode):
 
     def reject(self, what: str, reason: str) -> None:
         self.counts["rejected_inputs"] += 1
+        self.last_rejected = f"{what}: {reason}"
         self.get_logger().warning(f"rejected {what}: {reason}", throttle_duration_sec=self.options.log_throttle)
 
-    def on_state(self, msg: Float64MultiArray) -> None:
+    def on_state(self, msg: Float64MultiArray | Odometry) -> None:
         try:
-            self.state = array_to_vector(msg, self.n, "state")
+            self.state = self.io.state_of(msg, self.state)
         except InputError as exc:
-            self.reject("state", str(exc))
+            self.reject(self.io.state_topic, str(exc))
             return
         now = self.now()
         if self.state_time is not None:
@@ -267,10 +281,19 @@ class ControllerNode(LifecycleNode):
 
     def on_target(self, msg: Float64MultiArray) -> None:
         try:
-            self.target = array_to_vector(msg, self.p, "target")
+            self.set_target(array_to_vector(msg, self.p, "target"))
         except InputError as exc:
             self.reject("target", str(exc))
-            return
+
+    def on_goal(self, msg: PoseStamped) -> None:
+        """A goal pose (RViz "2D Goal Pose"): its position is y_t, in the odometry frame only."""
+        try:
+            self.set_target(self.io.target_of(msg))
+        except InputError as exc:
+            self.reject("goal_pose", str(exc))
+
+    def set_target(self, target: np.ndarray) -> None:
+        self.target = target
         self.get_logger().info(f"target y_t = {self.target.tolist()}")
         if self.lockstep and self.active and not self.state_solved:
             self.on_sample()
@@ -382,7 +405,7 @@ class ControllerNode(LifecycleNode):
             self.counts["fallbacks"] += 1
         if result.solve_time > self.controller.settings.sample_time:
             self.counts["deadline_overruns"] += 1
-        self.publish_prediction(result)
+        self.publish_views(result)
         level = DiagnosticStatus.WARN if result.is_fallback else DiagnosticStatus.OK
         message = str(result.status)
         if result.region_unavoidable:  # bad input: a region the plan cannot avoid from this state
@@ -410,7 +433,7 @@ class ControllerNode(LifecycleNode):
         return np.zeros(self.m)
 
     def send_command(self, u: np.ndarray) -> None:
-        self.pub_command.publish(vector_to_array(u))
+        self.io.publish_command(u)
         self.last_command = np.asarray(u, float)
 
     def publish_safe(self, why: str) -> None:
@@ -423,18 +446,20 @@ class ControllerNode(LifecycleNode):
         self.get_logger().error(f"{why}: applying {behavior} {self.last_command.tolist()}",
                                 throttle_duration_sec=self.options.log_throttle)
 
-    def publish_prediction(self, result: StepResult) -> None:
-        plane = self.controller.settings.plane
-        path = Path()
-        path.header.stamp = self.get_clock().now().to_msg()
-        path.header.frame_id = "state"
-        for x in result.states:
-            pose = PoseStamped()
-            pose.header = path.header
-            pose.pose.position.x, pose.pose.position.y = float(x[plane[0]]), float(x[plane[1]])
-            pose.pose.orientation.w = 1.0
-            path.poses.append(pose)
-        self.pub_prediction.publish(path)
+    def publish_views(self, result: StepResult) -> None:
+        """What this sample used and planned, for RViz and Foxglove (config/nmpc_avoid_ros.rviz)."""
+        stamp = self.get_clock().now().to_msg()
+        plane, frames = self.controller.settings.plane, self.io.frames
+        self.pub_prediction.publish(prediction_path(result.states, plane, stamp, frames.state, self.io.heading_index))
+        # moving regions (their predicted poses per stage) go in `predicted=` once the core has them
+        self.pub_regions.publish(regions_markers(self.controller.regions, stamp, frames))
+        if np.all(np.isfinite(result.x_a)):
+            self.pub_steady_state.publish(steady_state_marker(result.x_a, plane, stamp, frames.state))
+        if self.target is not None and self.p >= 2:
+            self.pub_target.publish(target_marker(self.target[list(self.controller.settings.output_plane)], stamp,
+                                                  frames.output))
+        self.pub_stats.publish(stats_array(result.solve_time, result.iterations, result.offset_cost,
+                                           result.avoidance_cost, result.tracking_cost))
 
     def publish_certificate(self, sample: CertificateSample) -> None:
         self.last_certificate = sample
@@ -451,7 +476,7 @@ class ControllerNode(LifecycleNode):
                   "stale_for_s": f"{0.0 if self.stale_since is None else self.now() - self.stale_since:.3f}",
                   "last_stale_s": f"{self.last_stale:.3f}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
-                  "last_obstacle_issue": self.last_obstacle_issue}
+                  "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected}
         if result is not None:
             values.update({
                 "status": result.status, "solver_status": result.solver_status,

@@ -6,11 +6,21 @@ Real time: a timer at `publish_rate` Hz integrates the continuous dynamics over 
 Lockstep (`lockstep: true`): the plant publishes x0 once the controller listens, then after each
 command advances exactly one `sample_time`, publishes `/clock` and the new state; a closed loop
 runs as fast as the controller solves and reproduces the offline loop.
+
+`interface: robot` (a model with states x, y, theta and inputs v, omega, e.g. `unicycle`): the
+plant stands for a differential-drive base: it publishes nav_msgs/Odometry on `odom` (pose in
+`odom_frame`, twist in `base_frame`, stamped with the node clock or, in lockstep, the simulated
+time) and takes geometry_msgs/TwistStamped (or Twist, `cmd_vel_stamped: false`) on `cmd_vel`.
+
+A plain node, not a lifecycle one: it stands for hardware, which a real robot's driver runs and
+this package does not manage.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from geometry_msgs.msg import Twist, TwistStamped
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
 from rclpy.time import Time
@@ -20,8 +30,10 @@ from std_msgs.msg import Float64MultiArray
 from ..core.closed_loop import ContinuousPlant, DiscretePlant
 from ..core.errors import ConfigError, InputError
 from ..core.models import MODELS, make_model
+from ..core.settings import INTERFACES
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.parameters import STREAM_QOS, ParamSpec, declare, finite_vector
+from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command
 from .runner import run_node
 
 INTEGRATIONS = ("continuous", "euler", "rk4")
@@ -46,6 +58,15 @@ PLANT_SPECS = [
     ParamSpec("process_noise_std", 0.0, "std of Gaussian noise added to the state per step (state units)",
               ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.0, 1e3)),
     ParamSpec("noise_seed", 0, "seed of the process noise", ParameterType.PARAMETER_INTEGER, read_only=True),
+    ParamSpec("interface", "array", "array: Float64MultiArray on state/command; robot: Odometry on odom, "
+              "TwistStamped/Twist on cmd_vel", ParameterType.PARAMETER_STRING, read_only=True,
+              choices=INTERFACES),
+    ParamSpec("cmd_vel_stamped", True, "robot interface: cmd_vel is TwistStamped (else Twist)",
+              ParameterType.PARAMETER_BOOL, read_only=True),
+    ParamSpec("odom_frame", "odom", "robot interface: header.frame_id of the odometry",
+              ParameterType.PARAMETER_STRING, read_only=True),
+    ParamSpec("base_frame", "base_link", "robot interface: child_frame_id of the odometry",
+              ParameterType.PARAMETER_STRING, read_only=True),
 ]
 
 
@@ -77,8 +98,16 @@ class PlantNode(Node):
         self.steps = 0
         self.rejected = 0
 
-        self.pub_state = self.create_publisher(Float64MultiArray, "state", STREAM_QOS)
-        self.create_subscription(Float64MultiArray, "command", self.on_command, STREAM_QOS)
+        self.robot = values["interface"] == "robot"
+        if self.robot:
+            check_robot_model(self.model)
+            self.odom_frame, self.base_frame = values["odom_frame"], values["base_frame"]
+            self.pub_state = self.create_publisher(Odometry, "odom", STREAM_QOS)
+            twist_type = TwistStamped if values["cmd_vel_stamped"] else Twist
+            self.create_subscription(twist_type, "cmd_vel", self.on_command, STREAM_QOS)
+        else:
+            self.pub_state = self.create_publisher(Float64MultiArray, "state", STREAM_QOS)
+            self.create_subscription(Float64MultiArray, "command", self.on_command, STREAM_QOS)
         if self.lockstep:
             self.pub_clock = self.create_publisher(Clock, "/clock", STREAM_QOS)
             # publish x0 once the controller's subscription is matched (then exactly once per command)
@@ -92,7 +121,11 @@ class PlantNode(Node):
         )
 
     def publish_state(self) -> None:
-        self.pub_state.publish(vector_to_array(self.x))
+        if not self.robot:
+            self.pub_state.publish(vector_to_array(self.x))
+            return
+        stamp = Time(nanoseconds=self.sim_time_ns).to_msg() if self.lockstep else self.get_clock().now().to_msg()
+        self.pub_state.publish(state_to_odometry(self.x, self.u, stamp, self.odom_frame, self.base_frame))
 
     def publish_initial_when_heard(self) -> None:
         if self.pub_state.get_subscription_count() >= self.wait_for_subscribers:
@@ -103,9 +136,9 @@ class PlantNode(Node):
     def publish_clock(self) -> None:
         self.pub_clock.publish(Clock(clock=Time(nanoseconds=self.sim_time_ns).to_msg()))
 
-    def on_command(self, msg: Float64MultiArray) -> None:
+    def on_command(self, msg: Float64MultiArray | Twist | TwistStamped) -> None:
         try:
-            self.u = array_to_vector(msg, self.model.m, "command")
+            self.u = twist_to_command(msg) if self.robot else array_to_vector(msg, self.model.m, "command")
         except InputError as exc:
             self.rejected += 1
             self.get_logger().warning(f"rejected command: {exc}", throttle_duration_sec=2.0)

@@ -25,7 +25,7 @@ in force; nothing in a message can make the store raise.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from builtin_interfaces.msg import Duration, Time
@@ -93,6 +93,7 @@ class RegionStore:
         max_markers_per_message: int = 1000,
         max_speed: float = 3.0,
         max_stamp_skew: float = 2.0,
+        frame_aliases: Mapping[str, str] | None = None,
     ) -> None:
         if default_frame not in FRAMES:
             raise InputError(f"default_frame must be one of {FRAMES}, got {default_frame!r}")
@@ -106,6 +107,10 @@ class RegionStore:
         self.default_frame = default_frame
         self.output_frame_available = bool(output_frame_available)
         self.max_markers_per_message = int(max_markers_per_message)
+        # e.g. {"odom": "output"}: a robot stack's markers in its odometry frame are positions
+        self.frame_aliases = dict(frame_aliases or {})
+        if any(plane not in FRAMES for plane in self.frame_aliases.values()):
+            raise InputError(f"frame_aliases must map to one of {FRAMES}, got {self.frame_aliases}")
         self._entries: dict[tuple[str, int], _Entry] = {}
         self._revision = 0
         self.motion = VelocityEstimator(max_speed, max_stamp_skew)
@@ -262,8 +267,10 @@ class RegionStore:
 
     def _frame_of(self, marker: Marker) -> str:
         frame = marker.header.frame_id or self.default_frame
+        frame = self.frame_aliases.get(frame, frame)
         if frame not in FRAMES:
-            raise RegionError(f"header.frame_id must be 'state', 'output' or empty, got {frame!r}")
+            known = ", ".join(repr(f) for f in (*FRAMES, *self.frame_aliases))
+            raise RegionError(f"header.frame_id must be {known} or empty, got {frame!r}")
         if frame == "output" and not self.output_frame_available:
             raise RegionError("frame 'output' is not available: this model's output has fewer than 2 coordinates")
         return frame

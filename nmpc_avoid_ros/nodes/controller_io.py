@@ -1,0 +1,86 @@
+"""The controller's two interfaces to a plant (parameter `interface`).
+
+- `array` (any model): Float64MultiArray on `state` (n values) in, on `command` (m values) out;
+  what the controller draws lies in the abstract frames `state` and `output`.
+- `robot` (a model with states x, y, theta and inputs v, omega, e.g. `unicycle`): nav_msgs/Odometry
+  on `odom` in (frame ids checked), geometry_msgs/TwistStamped (or Twist, `cmd_vel_stamped: false`)
+  on `cmd_vel` out, geometry_msgs/PoseStamped goals on `goal_pose` in; everything is drawn in
+  `odom_frame`. The array `target` topic stays available.
+
+Each interface turns a received message into a validated vector (InputError with the reason
+otherwise) and a command vector into its message; the node does the rest.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped, Twist, TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray
+
+from ..core.models import Model
+from ..core.settings import NodeSettings
+from ..ros.conversions import array_to_vector, vector_to_array
+from ..ros.parameters import STREAM_QOS
+from ..ros.robot import check_robot_model, goal_to_target, odometry_to_state, velocity_command
+from ..ros.visualization import DisplayFrames
+
+
+class ArrayInterface:
+    """`state` / `command` as Float64MultiArray (the ros2_control forward-command convention)."""
+
+    state_topic, state_type = "state", Float64MultiArray
+    goal_type = None
+    heading_index: int | None = None
+
+    def __init__(self, node: Node, model: Model, options: NodeSettings) -> None:
+        self.node, self.n = node, model.n
+        self.frames = DisplayFrames("state", "output")
+        self.marker_frame_aliases: dict[str, str] = {}
+        self.publisher = node.create_publisher(Float64MultiArray, "command", STREAM_QOS)
+
+    def state_of(self, msg: Any, last: np.ndarray | None) -> np.ndarray:
+        return array_to_vector(msg, self.n, "state")
+
+    def publish_command(self, u: np.ndarray) -> None:
+        self.publisher.publish(vector_to_array(u))
+
+    def destroy(self) -> None:
+        self.node.destroy_publisher(self.publisher)
+
+
+class RobotInterface:
+    """`odom` (Odometry) in, `cmd_vel` (TwistStamped or Twist) out, `goal_pose` (PoseStamped) in."""
+
+    state_topic, state_type = "odom", Odometry
+    goal_type = PoseStamped
+    heading_index = 2
+
+    def __init__(self, node: Node, model: Model, options: NodeSettings) -> None:
+        check_robot_model(model)
+        self.node = node
+        self.odom_frame, self.base_frame = options.odom_frame, options.base_frame
+        self.stamped = options.cmd_vel_stamped
+        self.frames = DisplayFrames(self.odom_frame, self.odom_frame)
+        # obstacle markers from the robot stack, in the odometry frame, are positions (the output)
+        self.marker_frame_aliases = {self.odom_frame: "output"}
+        self.publisher = node.create_publisher(TwistStamped if self.stamped else Twist, "cmd_vel", STREAM_QOS)
+
+    def state_of(self, msg: Any, last: np.ndarray | None) -> np.ndarray:
+        return odometry_to_state(msg, self.odom_frame, self.base_frame, None if last is None else float(last[2]))
+
+    def publish_command(self, u: np.ndarray) -> None:
+        stamp = self.node.get_clock().now().to_msg()
+        self.publisher.publish(velocity_command(u, self.stamped, stamp, self.base_frame))
+
+    def target_of(self, msg: Any) -> np.ndarray:
+        return goal_to_target(msg, self.odom_frame)
+
+    def destroy(self) -> None:
+        self.node.destroy_publisher(self.publisher)
+
+
+INTERFACES = {"array": ArrayInterface, "robot": RobotInterface}
