@@ -21,7 +21,7 @@ def installed(tmp_path_factory) -> Path:
     ws = tmp_path_factory.mktemp("ws")
     src = ws / "src" / "nmpc_avoid_ros"
     src.mkdir(parents=True)
-    for name in ("package.xml", "setup.py", "setup.cfg", "resource", "config", "nmpc_avoid_ros"):
+    for name in ("package.xml", "setup.py", "setup.cfg", "resource", "config", "launch", "nmpc_avoid_ros"):
         (shutil.copytree if (ROOT / name).is_dir() else shutil.copy)(ROOT / name, src / name)
     env = dict(os.environ, AMENT_PREFIX_PATH=sys.prefix)
     res = subprocess.run([str(COLCON), "build"], cwd=ws, env=env, capture_output=True, text=True, timeout=600)
@@ -44,5 +44,8 @@ def test_params_files_and_package_index_are_installed(installed):
     assert (share / "nmpc_avoid_ros" / "config" / "mobile_robot.yaml").is_file()
     for scene in ("crossing_walker", "head_on", "closing_gap"):
         assert (share / "nmpc_avoid_ros" / "config" / "scenes" / f"{scene}.yaml").is_file()
+    for name in ("config/unicycle.yaml", "config/nmpc_avoid_ros.rviz", "config/foxglove_layout.json",
+                 "launch/demo.launch.py", "launch/robot.launch.py"):
+        assert (share / "nmpc_avoid_ros" / name).is_file(), name
     assert (share / "nmpc_avoid_ros" / "package.xml").is_file()
     assert (share / "ament_index" / "resource_index" / "packages" / "nmpc_avoid_ros").is_file()
