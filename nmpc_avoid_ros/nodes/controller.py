@@ -48,14 +48,14 @@ import traceback
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry, Path
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
-from visualization_msgs.msg import Marker, MarkerArray
+from std_msgs.msg import Float64MultiArray
+from visualization_msgs.msg import MarkerArray
 
-from ..core.certificate import LAYOUT, CertificateSample, StabilityCertificate
+from ..core.certificate import CertificateSample, StabilityCertificate
 from ..core.controller import NmpcController, StepResult
 from ..core.errors import ConfigError, InputError, NmpcError
 from ..core.settings import NODE_SETTINGS, SETTINGS, NodeSettings
@@ -71,8 +71,8 @@ from ..ros.parameters import (
     settings_specs,
 )
 from ..ros.qos import LatchedSubscription
-from ..ros.visualization import prediction_path, regions_markers, stats_array, steady_state_marker, target_marker
 from .controller_io import INTERFACES
+from .controller_views import ControllerViews
 from .runner import run_node
 
 #: the node's own parameters (declared in core/settings.py NodeSettings)
@@ -163,16 +163,10 @@ class ControllerNode(LifecycleNode):
         self.last_stale = 0.0  # s, length of the last stale episode that ended
 
         self.last_rejected = ""
-        self.pub_prediction = self.create_publisher(Path, "~/prediction", STREAM_QOS)
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
-        self.pub_regions = self.create_publisher(MarkerArray, "~/regions", STREAM_QOS)
-        self.pub_steady_state = self.create_publisher(Marker, "~/steady_state", STREAM_QOS)
-        self.pub_target = self.create_publisher(Marker, "~/target_marker", STREAM_QOS)
-        self.pub_stats = self.create_publisher(Float64MultiArray, "~/stats", STREAM_QOS)
+        self.views = ControllerViews(self, self.io)
         self.latched_inputs = [LatchedSubscription(self, Float64MultiArray, "target", self.on_target),
                                LatchedSubscription(self, MarkerArray, "obstacles", self.on_obstacles)]
-        self.pub_certificate = self.create_publisher(Float64MultiArray, "~/certificate", STREAM_QOS)
-        self.certificate_layout = [MultiArrayDimension(label=",".join(LAYOUT), size=len(LAYOUT), stride=len(LAYOUT))]
         if self.io.goal_type is not None:
             self.latched_inputs.append(LatchedSubscription(self, self.io.goal_type, "goal_pose", self.on_goal))
         self.get_logger().info(
@@ -241,9 +235,8 @@ class ControllerNode(LifecycleNode):
         for latched in self.latched_inputs:
             latched.destroy()
         self.io.destroy()
-        for publisher in (self.pub_prediction, self.pub_diagnostics, self.pub_certificate, self.pub_regions,
-                          self.pub_steady_state, self.pub_target, self.pub_stats):
-            self.destroy_publisher(publisher)
+        self.views.destroy()
+        self.destroy_publisher(self.pub_diagnostics)
         self.latched_inputs = []
         self.controller = None
         self.get_logger().info("controller released its solver, publishers and subscriptions")
@@ -405,7 +398,7 @@ class ControllerNode(LifecycleNode):
             self.counts["fallbacks"] += 1
         if result.solve_time > self.controller.settings.sample_time:
             self.counts["deadline_overruns"] += 1
-        self.publish_views(result)
+        self.views.publish(result, self.controller.settings, self.controller.regions, self.state_time, self.target)
         level = DiagnosticStatus.WARN if result.is_fallback else DiagnosticStatus.OK
         message = str(result.status)
         if result.region_unavoidable:  # bad input: a region the plan cannot avoid from this state
@@ -446,26 +439,9 @@ class ControllerNode(LifecycleNode):
         self.get_logger().error(f"{why}: applying {behavior} {self.last_command.tolist()}",
                                 throttle_duration_sec=self.options.log_throttle)
 
-    def publish_views(self, result: StepResult) -> None:
-        """What this sample used and planned, for RViz and Foxglove (config/nmpc_avoid_ros.rviz)."""
-        stamp = self.get_clock().now().to_msg()
-        plane, frames = self.controller.settings.plane, self.io.frames
-        self.pub_prediction.publish(prediction_path(result.states, plane, stamp, frames.state, self.io.heading_index))
-        # moving regions (their predicted poses per stage) go in `predicted=` once the core has them
-        self.pub_regions.publish(regions_markers(self.controller.regions, stamp, frames))
-        if np.all(np.isfinite(result.x_a)):
-            self.pub_steady_state.publish(steady_state_marker(result.x_a, plane, stamp, frames.state))
-        if self.target is not None and self.p >= 2:
-            self.pub_target.publish(target_marker(self.target[list(self.controller.settings.output_plane)], stamp,
-                                                  frames.output))
-        self.pub_stats.publish(stats_array(result.solve_time, result.iterations, result.offset_cost,
-                                           result.avoidance_cost, result.tracking_cost))
-
     def publish_certificate(self, sample: CertificateSample) -> None:
         self.last_certificate = sample
-        msg = Float64MultiArray(data=sample.as_vector())
-        msg.layout.dim = self.certificate_layout
-        self.pub_certificate.publish(msg)
+        self.views.publish_certificate(sample)
 
     def publish_diagnostics(self, level: bytes, message: str, result: StepResult | None, latency: float) -> None:
         s = self.controller.settings

@@ -1,0 +1,61 @@
+"""The controller's outputs for people and tools (config/nmpc_avoid_ros.rviz, config/foxglove_layout.json):
+`~/prediction` (Path), `~/regions` (MarkerArray), `~/steady_state` and `~/target_marker` (Marker),
+`~/stats` (Float64MultiArray) and `~/certificate` (Float64MultiArray)."""
+
+from __future__ import annotations
+
+import numpy as np
+from nav_msgs.msg import Path
+from rclpy.node import Node
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ..core.certificate import LAYOUT, CertificateSample
+from ..core.controller import StepResult
+from ..core.settings import ControllerSettings
+from ..ros.parameters import STREAM_QOS
+from ..ros.visualization import prediction_path, regions_markers, stats_array, steady_state_marker, target_marker
+from .controller_io import ArrayInterface, RobotInterface
+
+
+class ControllerViews:
+    """Publishers of what one sample used and planned; created at configure, destroyed at cleanup."""
+
+    def __init__(self, node: Node, io: ArrayInterface | RobotInterface) -> None:
+        self.node, self.io = node, io
+        self.prediction = node.create_publisher(Path, "~/prediction", STREAM_QOS)
+        self.regions = node.create_publisher(MarkerArray, "~/regions", STREAM_QOS)
+        self.steady_state = node.create_publisher(Marker, "~/steady_state", STREAM_QOS)
+        self.target = node.create_publisher(Marker, "~/target_marker", STREAM_QOS)
+        self.stats = node.create_publisher(Float64MultiArray, "~/stats", STREAM_QOS)
+        self.certificate = node.create_publisher(Float64MultiArray, "~/certificate", STREAM_QOS)
+        self.certificate_layout = [MultiArrayDimension(label=",".join(LAYOUT), size=len(LAYOUT), stride=len(LAYOUT))]
+
+    def publish(self, result: StepResult, settings: ControllerSettings, regions: tuple, state_time: float,
+                target: np.ndarray | None) -> None:
+        """The plan of `result`, the regions at `state_time` (s, node clock) and, for moving ones, at
+        each later stage of the horizon as the NLP predicts them."""
+        stamp = self.node.get_clock().now().to_msg()
+        plane, frames = settings.plane, self.io.frames
+        self.prediction.publish(prediction_path(result.states, plane, stamp, frames.state, self.io.heading_index))
+        now = [region.at(state_time) for region in regions]
+        predicted = []
+        if settings.predict_obstacles:
+            predicted = [[region.at(state_time + k * settings.sample_time) for region in regions if region.moving]
+                         for k in range(1, settings.horizon + 1)]
+        self.regions.publish(regions_markers(now, stamp, frames, predicted))
+        if np.all(np.isfinite(result.x_a)):
+            self.steady_state.publish(steady_state_marker(result.x_a, plane, stamp, frames.state))
+        if target is not None and target.size >= 2:
+            self.target.publish(target_marker(target[list(settings.output_plane)], stamp, frames.output))
+        self.stats.publish(stats_array(result.solve_time, result.iterations, result.offset_cost,
+                                       result.avoidance_cost, result.tracking_cost))
+
+    def publish_certificate(self, sample: CertificateSample) -> None:
+        msg = Float64MultiArray(data=sample.as_vector())
+        msg.layout.dim = self.certificate_layout
+        self.certificate.publish(msg)
+
+    def destroy(self) -> None:
+        for publisher in (self.prediction, self.regions, self.steady_state, self.target, self.stats, self.certificate):
+            self.node.destroy_publisher(publisher)
