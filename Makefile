@@ -1,7 +1,7 @@
 # The two commands of the README: `make demo` and `make test`. Both bootstrap .venv from the
 # pinned requirements on a fresh machine (Python 3.11, no ROS distribution: Jazzy wheels from PyPI).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
-VENV   := .venv
+VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= out
