@@ -37,9 +37,10 @@ PIP_TO_ROSDEP: dict[str, str | None] = {
     "colcon-ros": None,
     "colcon-python-setup-py": None,
     "wheel": None,  # build tool of the venv
+    "playwright": None,  # the HTML report's browser test; no rosdep key: a package.xml comment says so
 }
 #: why a requirement has no key, as package.xml must say it in a comment
-NO_KEY_COMMENTED = {"dask", "distributed"}
+NO_KEY_COMMENTED = {"dask", "distributed", "playwright"}
 #: ROS packages of the distribution that the PyPI wheels do not carry (ros2 launch only)
 ROS_PACKAGES_NOT_IN_WHEELS = {"launch", "launch_ros"}
 
