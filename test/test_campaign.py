@@ -61,6 +61,7 @@ def test_json_structure_and_sensible_values(campaign):
             assert 0.0 <= s[key] <= 1.0
         assert s["max_penetration"] >= 0 and s["fallbacks"] >= 0 and s["stop_short"] >= 0
         assert s["samples"] == n * data["meta"]["steps"][fam]
+        assert 0.0 <= s["certificate_violation_rate"] <= 1.0 and s["certificate_checked"] > 0
     by_id = {r["id"]: r for r in data["scenarios"]}
     for r in data["scenarios"]:
         if r["family"] == "vdp":  # Y_r = [-5.94, 5.94]: the projection is a clip
@@ -77,6 +78,9 @@ def test_json_structure_and_sensible_values(campaign):
         assert r["converged"] and r["near"] and not r["stop_short"], r
         assert r["max_penetration"] < 1e-3 and r["fallbacks"] == 0
         assert r["rf_kept"] == r["rf_pairs"] == r["samples"] - 1
+        # the Euler plant is the prediction model: every later sample is checked, none violates
+        assert r["certificate_checked"] == r["certificate_checked_nominal"] == r["samples"] - 1
+        assert r["certificate_violations"] == 0 and r["model_mismatch_max"] < 1e-9
     assert not by_id["vdp-0004"]["reachable"] and by_id["vdp-0004"]["final_y"][0] == pytest.approx(-5.94, abs=0.05)
     assert by_id["vdp-0005"]["reachable"] and by_id["vdp-0005"]["error_to_target"] < SETTLING_TOLERANCE
     for name in ("final_error.png", "penetration.png", "solve_time.png", "examples_vdp.png"):

@@ -31,7 +31,7 @@ from .status import StepStatus
 
 #: the per-sample vector of `~/certificate` (std_msgs/Float64MultiArray), in this order
 LAYOUT = ("value_function", "decrease", "decrease_bound", "margin", "tolerance", "checked", "violated",
-          "certificate_violations", "consecutive_violations")
+          "certificate_violations", "consecutive_violations", "model_mismatch")
 
 #: where the value of V_N comes from, by step status
 COST_SOURCES = {StepStatus.OK: "optimal", StepStatus.TRUNCATED: "budget-cut iterate",
@@ -51,7 +51,9 @@ class CertificateSample:
     reason: why not ('' when checked); violated: decrease > bound + tolerance;
     cost_source: what V_N is the cost of (see COST_SOURCES); violations: running count;
     consecutive: violations in a row up to this sample; error_after: the settings'
-    certificate_error_after (that many in a row are an ERROR).
+    certificate_error_after (that many in a row are an ERROR); model_mismatch: max |x(k) - x_pred(k)|
+    between the measured state and the previous plan's x(1), the candidate's start (0 for the
+    nominal model up to the solver's constraint tolerance; nan when there was no previous plan).
     """
 
     value_function: float
@@ -65,6 +67,7 @@ class CertificateSample:
     violations: int
     consecutive: int
     error_after: int = 3
+    model_mismatch: float = math.nan
 
     @property
     def margin(self) -> float:
@@ -81,7 +84,8 @@ class CertificateSample:
     def as_vector(self) -> list[float]:
         """The values in LAYOUT order (booleans as 0/1)."""
         return [self.value_function, self.decrease, self.decrease_bound, self.margin, self.tolerance,
-                float(self.checked), float(self.violated), float(self.violations), float(self.consecutive)]
+                float(self.checked), float(self.violated), float(self.violations), float(self.consecutive),
+                self.model_mismatch]
 
     def as_dict(self) -> dict:
         """LAYOUT's values (nan -> None, so the JSON is strict), plus reason and cost_source."""
@@ -101,7 +105,8 @@ class StabilityCertificate:
         self.controller = controller
         self.violations = 0
         self.consecutive = 0
-        self._previous: tuple[float, float, np.ndarray] | None = None  # V_N, bound, parameters without x0
+        # V_N, bound, parameters without x0, the plan's x(1)
+        self._previous: tuple[float, float, np.ndarray, np.ndarray] | None = None
 
     def reset(self) -> None:
         """Forget the previous sample (the next one is not checked)."""
@@ -128,13 +133,14 @@ class StabilityCertificate:
         candidate_par[:n] = result.states[1]
         bound = self.plan_cost(candidate_states, candidate_inputs, result.y_a, result.x_a, result.u_a,
                                candidate_par) - value
-        previous, self._previous = self._previous, (value, bound, par[n:].copy())
+        previous, self._previous = self._previous, (value, bound, par[n:].copy(), result.states[1].copy())
         if previous is None:
             return self._unchecked(value, source, "first sample")
+        mismatch = float(np.max(np.abs(result.states[0] - previous[3])))
         if not np.array_equal(previous[2], par[n:]):
-            return self._unchecked(value, source, "parameters changed (target, regions or weights)")
+            return self._unchecked(value, source, "parameters changed (target, regions or weights)", mismatch)
         if not math.isfinite(value) or not math.isfinite(previous[0]):
-            return self._unchecked(value, source, "cost not finite")
+            return self._unchecked(value, source, "cost not finite", mismatch)
         decrease = value - previous[0]
         s = self.controller.settings
         tolerance = s.certificate_tolerance * s.tolerance * max(1.0, abs(previous[0]))
@@ -142,12 +148,12 @@ class StabilityCertificate:
         self.consecutive = self.consecutive + 1 if violated else 0
         self.violations += int(violated)
         return CertificateSample(value, decrease, previous[1], tolerance, True, "", violated, source,
-                                 self.violations, self.consecutive, s.certificate_error_after)
+                                 self.violations, self.consecutive, s.certificate_error_after, mismatch)
 
-    def _unchecked(self, value: float, source: str, reason: str) -> CertificateSample:
+    def _unchecked(self, value: float, source: str, reason: str, mismatch: float = math.nan) -> CertificateSample:
         self.consecutive = 0
         return CertificateSample(value, math.nan, math.nan, math.nan, False, reason, False, source,
-                                 self.violations, self.consecutive)
+                                 self.violations, self.consecutive, model_mismatch=mismatch)
 
     def plan_cost(self, states: np.ndarray, inputs: np.ndarray, y_a: np.ndarray, x_a: np.ndarray,
                   u_a: np.ndarray, par: np.ndarray) -> float:

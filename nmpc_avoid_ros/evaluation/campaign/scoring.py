@@ -15,6 +15,9 @@ Definitions (per scenario; y is the output, K the last sample; y* and y~ from re
   (budget cuts with a feasible iterate count here, as 'truncated'); fallback: a sample that applied
   the controller's fallback. Recursive feasibility: among samples k >= 1 whose predecessor's solve
   was usable (ok/truncated), the share whose own solve was usable.
+* certificate (core/certificate.py, docs/certificate.md): checked samples and violations of the
+  value-function decrease, also among the nominal samples (the measured state within
+  NOMINAL_MISMATCH of the previous plan's x(1)), and the largest such model mismatch.
 
 Extending: a new per-run measure is one more entry in the dict of the RECORD_SECTIONS function it
 belongs to (or one more function in RECORD_SECTIONS), plus a line in summary.DEFINITIONS; a
@@ -73,6 +76,9 @@ FALLBACK_KINDS = tuple(f"fallback_{kind}" for kind in FALLBACK_CANDIDATES)
 FIRST_ACTED_SAMPLE = 2
 #: record fields measured in wall time (machine- and load-dependent); ('trace', 'solve_ms') is nested
 TIMED_FIELDS = ("wall_s", "solve_ms", ("trace", "solve_ms"))
+#: a sample is nominal for the certificate when the measured state is this close (inf-norm) to the
+#: previous plan's x(1) (the Euler plant: ~1e-16; the continuous plant: up to ~1 on van der Pol)
+NOMINAL_MISMATCH = 1e-6
 #: what may end a closed loop early (a non-finite plant state refused by the controller, a failed integration)
 STOPS = (NmpcError, ArithmeticError, RuntimeError, ValueError)
 
@@ -236,6 +242,19 @@ def robustness_section(s: Scored) -> dict[str, Any]:
     }
 
 
+def certificate_section(s: Scored) -> dict[str, Any]:
+    """The stability certificate (core/certificate.py): samples checked and violated, overall and among
+    the nominal ones (the measured state within NOMINAL_MISMATCH of the previous plan's x(1)), and the
+    largest model mismatch."""
+    checked = [c for c in s.run.certificate if c["checked"]]
+    nominal = [c for c in checked if c["model_mismatch"] is not None and c["model_mismatch"] <= NOMINAL_MISMATCH]
+    mismatch = [c["model_mismatch"] for c in s.run.certificate if c["model_mismatch"] is not None]
+    return {"certificate_checked": len(checked), "certificate_violations": sum(c["violated"] for c in checked),
+            "certificate_checked_nominal": len(nominal),
+            "certificate_violations_nominal": sum(c["violated"] for c in nominal),
+            "model_mismatch_max": max(mismatch, default=None)}
+
+
 def trace_section(s: Scored) -> dict[str, Any]:
     """The trajectory kept for the figures (states to 6 digits, solve times, one status code per sample)."""
     return {"trace": {"x": [_vec(r, 6) for r in s.run.x], "solve_ms": _vec(s.run.solve_time * 1e3, 3),
@@ -244,7 +263,7 @@ def trace_section(s: Scored) -> dict[str, Any]:
 
 #: the parts of a record, in order; each maps a scored run to some of its fields
 RECORD_SECTIONS: tuple[Callable[[Scored], dict[str, Any]], ...] = (
-    outcome_section, avoidance_section, solver_section, robustness_section, trace_section)
+    outcome_section, avoidance_section, solver_section, robustness_section, certificate_section, trace_section)
 
 
 def classify(record: dict[str, Any]) -> dict[str, Any]:

@@ -118,6 +118,7 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "solve_ms_max": float(max(r["solve_ms"]["max"] for r in records)),
         "solve_ms_median_of_medians": float(np.median([r["solve_ms"]["median"] for r in records])),
         "budget_exhausted": sum(r["budget_exhausted"] for r in records),
+        **certificate_summary(records),
         "examples": {
             "stop_short": [r["id"] for r in short][:5],
             "stopped_early": [f"{r['id']}: {r['stopped_early']}" for r in diverged][:5],
@@ -128,6 +129,23 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "x0_infeasible": [r["id"] for r in records if r["x0_in_feasible_set"] == "infeasible"][:5],
         },
     }
+
+
+def certificate_summary(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Certificate violation rates (violations per checked sample), pooled, nominal and mismatched samples."""
+    def rate(violations: int, checked: int) -> float | None:
+        return violations / checked if checked else None
+
+    total = [sum(r.get(k, 0) for r in records) for k in ("certificate_violations", "certificate_checked",
+                                                          "certificate_violations_nominal",
+                                                          "certificate_checked_nominal")]
+    mismatch = [r["model_mismatch_max"] for r in records if r.get("model_mismatch_max") is not None]
+    return {"certificate_checked": total[1], "certificate_violations": total[0],
+            "certificate_violation_rate": rate(total[0], total[1]),
+            "certificate_violation_rate_nominal": rate(total[2], total[3]),
+            "certificate_violation_rate_mismatched": rate(total[0] - total[2], total[1] - total[3]),
+            "runs_with_certificate_violation": sum(r.get("certificate_violations", 0) > 0 for r in records),
+            "model_mismatch_max": _max(mismatch)}
 
 
 DEFINITIONS = {
@@ -162,6 +180,11 @@ DEFINITIONS = {
     "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
                           "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",
     "recursive_feasibility_rate": "P(solve k usable | solve k-1 usable), usable = status ok or truncated",
+    "certificate_violation_rate": "violations of the value-function decrease (docs/certificate.md) per checked "
+                                  "sample, pooled; _nominal: among samples whose measured state is within 1e-6 of "
+                                  "the previous plan's x(1) (the proof's nominal model), _mismatched: the others",
+    "model_mismatch_max": "largest |x(k) - x_pred(k)| (inf-norm) between a measured state and the previous plan's "
+                          "x(1): 0 up to rounding on the Euler plant, the one-step model error on the continuous one",
 }
 
 
@@ -195,6 +218,13 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"fallbacks by candidate {s['fallback_kinds']}; escapes tried {s['escapes_tried']}, taken "
             f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs",
         ]
+        if s.get("certificate_checked"):
+            lines.append(f"  certificate violations {s['certificate_violations']} of {s['certificate_checked']} "
+                         f"checked samples ({pct(s['certificate_violation_rate'])}; nominal "
+                         f"{pct(s['certificate_violation_rate_nominal'])}, mismatched "
+                         f"{pct(s['certificate_violation_rate_mismatched'])}) in "
+                         f"{s['runs_with_certificate_violation']} runs; model mismatch max "
+                         f"{_fmt(s['model_mismatch_max'])}")
         if s.get("solve_ms"):
             t = s["solve_ms"]
             lines.append(f"  solve ms median {t['median']:.3g}, p99 {t['p99']:.3g}, max {t['max']:.3g}")

@@ -25,7 +25,7 @@ SWEEP_KEYS = ("share_converged", "share_near", "share_near_admissible", "stop_sh
               "max_penetration_obstacles", "min_clearance_obstacles", "min_clearance_obstacles_median",
               "penetration_after_first_step", "fallback_penetration",
               "fallbacks", "solver_failures", "recursive_feasibility_rate",
-              "solve_ms_median_of_medians", "solve_ms_max")
+              "solve_ms_median_of_medians", "solve_ms_max", "certificate_violation_rate")
 
 
 @dataclass(frozen=True)
