@@ -96,3 +96,17 @@ def test_repeated_violations_escalate_from_warn_to_error():
     first_error = levels.index("error")
     assert levels[first_error - error_after + 1:first_error] == ["warn"] * (error_after - 1)
     assert certificate.violations == sum(level != "ok" for level in levels)
+
+
+def test_a_moving_region_keeps_the_certificate_checked_and_met_on_the_nominal_model():
+    """A moving ellipse that the loop brushes past: the shifted candidate is costed with the regions where
+    they are at the next sample's stage times, so every sample after the first is checked, none violated."""
+    from nmpc_avoid_ros.core.closed_loop import run_closed_loop
+    from nmpc_avoid_ros.core.regions import Ellipse
+
+    moving = Ellipse(center=(-1.0, -0.5), semi_axes=(0.6, 0.4), velocity=(0.2, 0.1), stamp=0.0)
+    run = run_closed_loop(NmpcController(ControllerSettings()), [-5.0, 0.0], TARGET, 50, "euler",
+                          regions=lambda k: [moving] if k == 0 else None)
+    assert max(moving.at(k * 0.5).depth(run.x[k]) for k in range(50)) > -0.01  # it rides the moving boundary
+    assert [c["checked"] for c in run.certificate] == [False] + [True] * 49
+    assert sum(c["violated"] for c in run.certificate) == 0

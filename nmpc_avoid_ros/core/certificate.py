@@ -6,9 +6,10 @@ parameters and a solver that does at least as well as the shifted candidate,
     V_N(k+1) - V_N(k) <= -l(x(k) - x_a(k), u(k) - u_a(k)) - mu F(x(k), u(k)) + mu F(x_a(k), u_a(k))
 
 where V_N(k) = V_o + V_a + sum l is the cost of the plan applied at sample k. The right-hand side
-(`decrease_bound`) is computed as J(shifted candidate at the nominal successor) - V_N(k), which
-equals the expression above term by term (a test checks it) and needs nothing but the NLP's own
-cost terms, whatever the regions and the model.
+(`decrease_bound`) is computed at sample k+1 as J(previous plan shifted, from its x(1), under the
+parameters of k+1) - V_N(k), which equals the expression above term by term (a test checks it),
+needs nothing but the NLP's own cost terms whatever the regions and the model, and places moving
+regions at the stage times of k+1.
 
 A violation is `decrease > decrease_bound + tolerance`, with
 
@@ -94,19 +95,27 @@ class CertificateSample:
                 "cost_source": self.cost_source, "level": self.level}
 
 
+@dataclass
+class _Previous:
+    """What the next sample is checked against: V_N of this one, its parameter key and its plan."""
+
+    value: float
+    key: tuple
+    result: StepResult
+
+
 class StabilityCertificate:
     """Checks the decrease inequality sample after sample for one controller.
 
-    Call `observe(result, y_t)` right after each `controller.step` (same regions and settings as
-    the step used), `skip(reason)` for a sample without a solve (no new state, stale state).
+    Call `observe(result, y_t, time)` right after each `controller.step` (same regions, settings and
+    time as the step used), `skip(reason)` for a sample without a solve (no new state, stale state).
     """
 
     def __init__(self, controller: NmpcController) -> None:
         self.controller = controller
         self.violations = 0
         self.consecutive = 0
-        # V_N, bound, parameters without x0, the plan's x(1)
-        self._previous: tuple[float, float, np.ndarray, np.ndarray] | None = None
+        self._previous: _Previous | None = None
 
     def reset(self) -> None:
         """Forget the previous sample (the next one is not checked)."""
@@ -118,36 +127,44 @@ class StabilityCertificate:
         return CertificateSample(math.nan, math.nan, math.nan, math.nan, False, reason, False, "none",
                                  self.violations, self.consecutive)
 
-    def observe(self, result: StepResult, y_t: np.ndarray) -> CertificateSample:
-        """Score the sample whose step gave `result` for target y_t [p]."""
+    def observe(self, result: StepResult, y_t: np.ndarray, time: float | None = None) -> CertificateSample:
+        """Score the sample whose step gave `result` for target y_t [p] at `time` (s, as given to the step)."""
         source = COST_SOURCES.get(result.status, str(result.status))
         n, N = self.controller.model.n, self.controller.nlp.layout.horizon
         if not np.all(np.isfinite(result.y_a)) or result.states.shape[0] != N + 1 or result.inputs.shape[0] != N:
             return self.skip(f"no plan of horizon {N} ({source})")
-        par = self.controller.parameters(result.states[0], y_t)
+        par = self.controller.parameters(result.states[0], y_t, time)
         value = self.plan_cost(result.states, result.inputs, result.y_a, result.x_a, result.u_a, par)
-        # the shifted candidate (u(1..N-1), u_a; x(2..N), x_a) from the nominal successor x(1)
-        candidate_states = np.vstack([result.states[1:], result.x_a[None, :]])
-        candidate_inputs = np.vstack([result.inputs[1:], result.u_a[None, :]])
-        candidate_par = par.copy()
-        candidate_par[:n] = result.states[1]
-        bound = self.plan_cost(candidate_states, candidate_inputs, result.y_a, result.x_a, result.u_a,
-                               candidate_par) - value
-        previous, self._previous = self._previous, (value, bound, par[n:].copy(), result.states[1].copy())
+        # what must stay equal (Assumption P): the parameters but x(0) and the slots' time-dependent
+        # packing, and the regions themselves (a moving one is the same trajectory while its
+        # stamp and velocity are)
+        key = (par[n:par.size - self.controller.nlp.slot_layout.size].copy(), self.controller.regions,
+               self.controller.settings.predict_obstacles)
+        previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:
             return self._unchecked(value, source, "first sample")
-        mismatch = float(np.max(np.abs(result.states[0] - previous[3])))
-        if not np.array_equal(previous[2], par[n:]):
+        plan = previous.result
+        mismatch = float(np.max(np.abs(result.states[0] - plan.states[1])))
+        if not (np.array_equal(previous.key[0], key[0]) and previous.key[1:] == key[1:]):
             return self._unchecked(value, source, "parameters changed (target, regions or weights)", mismatch)
-        if not math.isfinite(value) or not math.isfinite(previous[0]):
+        # the previous plan shifted (u(1..N-1), u_a; x(2..N), x_a), started at its own x(1) (the
+        # nominal successor) and costed with this sample's parameters (moving regions at this
+        # sample's stage times)
+        candidate_par = par.copy()
+        candidate_par[:n] = plan.states[1]
+        candidate = self.plan_cost(np.vstack([plan.states[1:], plan.x_a[None, :]]),
+                                   np.vstack([plan.inputs[1:], plan.u_a[None, :]]), plan.y_a, plan.x_a, plan.u_a,
+                                   candidate_par)
+        bound = candidate - previous.value
+        if not math.isfinite(value) or not math.isfinite(bound):
             return self._unchecked(value, source, "cost not finite", mismatch)
-        decrease = value - previous[0]
+        decrease = value - previous.value
         s = self.controller.settings
-        tolerance = s.certificate_tolerance * s.tolerance * max(1.0, abs(previous[0]))
-        violated = decrease > previous[1] + tolerance
+        tolerance = s.certificate_tolerance * s.tolerance * max(1.0, abs(previous.value))
+        violated = decrease > bound + tolerance
         self.consecutive = self.consecutive + 1 if violated else 0
         self.violations += int(violated)
-        return CertificateSample(value, decrease, previous[1], tolerance, True, "", violated, source,
+        return CertificateSample(value, decrease, bound, tolerance, True, "", violated, source,
                                  self.violations, self.consecutive, s.certificate_error_after, mismatch)
 
     def _unchecked(self, value: float, source: str, reason: str, mismatch: float = math.nan) -> CertificateSample:

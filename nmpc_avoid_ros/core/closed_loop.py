@@ -291,7 +291,7 @@ def run_closed_loop(
 
     def observe(k: int, result: StepResult) -> None:
         y_t = np.asarray(target(k) if callable(target) else target, float)
-        certified.append(certificate.observe(result, y_t).as_dict())
+        certified.append(certificate.observe(result, y_t, k * controller.settings.sample_time).as_dict())
         if on_step:
             on_step(k, result)
 

@@ -405,7 +405,7 @@ class ControllerNode(LifecycleNode):
             level = DiagnosticStatus.ERROR
             message = f"{result.status}: {result.fallback_reason}"
             self.get_logger().error(message, throttle_duration_sec=self.options.log_throttle)
-        certificate = self.certificate.observe(result, self.target)
+        certificate = self.certificate.observe(result, self.target, self.state_time)
         self.publish_certificate(certificate)
         if certificate.violated:
             note = f"certificate violated by {-certificate.margin:.3g} ({certificate.consecutive} in a row)"
