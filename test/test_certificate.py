@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -99,14 +100,19 @@ def test_repeated_violations_escalate_from_warn_to_error():
 
 
 def test_a_moving_region_keeps_the_certificate_checked_and_met_on_the_nominal_model():
-    """A moving ellipse that the loop brushes past: the shifted candidate is costed with the regions where
-    they are at the next sample's stage times, so every sample after the first is checked, none violated."""
+    """A moving ellipse that the loop brushes past, re-published every sample with its new stamp and pose (as
+    an obstacle source does): the same trajectory, so Assumption P holds; the shifted candidate is costed with
+    the region where it is at the next sample's stage times: every sample after the first checked, none violated."""
     from nmpc_avoid_ros.core.closed_loop import run_closed_loop
     from nmpc_avoid_ros.core.regions import Ellipse
 
     moving = Ellipse(center=(-1.0, -0.5), semi_axes=(0.6, 0.4), velocity=(0.2, 0.1), stamp=0.0)
     run = run_closed_loop(NmpcController(ControllerSettings()), [-5.0, 0.0], TARGET, 50, "euler",
-                          regions=lambda k: [moving] if k == 0 else None)
+                          regions=lambda k: [moving.at(k * 0.5)])
     assert max(moving.at(k * 0.5).depth(run.x[k]) for k in range(50)) > -0.01  # it rides the moving boundary
     assert [c["checked"] for c in run.certificate] == [False] + [True] * 49
     assert sum(c["violated"] for c in run.certificate) == 0
+    # a region that jumps is another region: that sample is not checked
+    jumped = run_closed_loop(NmpcController(ControllerSettings()), [-5.0, 0.0], TARGET, 6, "euler",
+                             regions=lambda k: [moving if k < 3 else dataclasses.replace(moving, center=(-1.0, 0.5))])
+    assert [c["checked"] for c in jumped.certificate] == [False, True, True, False, True, True]

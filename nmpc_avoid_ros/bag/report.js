@@ -37,7 +37,7 @@ class Plot {
       c.beginPath(); c.moveTo(this.X(v), this.m.t); c.lineTo(this.X(v), H - this.m.b); c.stroke();
       c.fillText(String(v), this.X(v) - 8, H - this.m.b + 13);
     }
-    for (const v of niceTicks(this.yr[0], this.yr[1], 5)) {
+    for (const v of niceTicks(this.yr[0], this.yr[1], Math.max(2, Math.min(5, Math.floor((H - this.m.t - this.m.b) / 18))))) {
       const y = this.log ? Math.pow(10, v) : v;
       c.beginPath(); c.moveTo(this.m.l, this.Y(y)); c.lineTo(W - this.m.r, this.Y(y)); c.stroke();
       c.fillText(this.log ? "1e" + v : String(v), 4, this.Y(y) + 4);
@@ -133,7 +133,8 @@ function drawPlane(run, k) {
   const t = run.times[k], drawn = {regions: [], predicted_regions: []};
   for (const idx of run.active[k] || []) {
     const r = run.regions[idx];
-    if (r.frame !== "state") continue;
+    // output-frame regions are drawn in the same axes: the plane's states are the outputs there
+    // (the robot's position); elsewhere they are a guide only
     const now = regionPoints(r, t);
     p.polygon(now, "rgba(214,39,40,0.35)", "#d62728");
     drawn.regions.push(now);

@@ -10,7 +10,8 @@
     prediction [K]: the plan's x(0..N) in the plane [N+1, 2], or null (no plan published then)
     regions: table of distinct regions {kind: ellipse|polygon, frame, center, semi_axes, yaw,
     vertices, velocity, stamp}; active [K]: indices into the table; times [K]: the controller's
-    clock of each sample (moving regions sit at c + v (t - stamp))
+    clock of each sample since the first (moving regions sit at c + v (t - stamp), stamps on the same
+    clock)
     keep_in: {x [2], y [2], nx, ny, mask}: '1' where a keep-in expression is violated on a grid of
     the plane (other states and inputs 0), row-major from the lower left; null without keep-in
     metrics: bag/analysis.run_metrics
@@ -70,8 +71,9 @@ def predictions(bag: Bag, run: RecordedRun, plane: tuple[int, int]) -> list[list
     return out
 
 
-def region_entry(region: Region) -> dict[str, Any]:
-    common = {"frame": region.frame, "velocity": list(region.velocity), "stamp": region.stamp}
+def region_entry(region: Region, t0: float) -> dict[str, Any]:
+    """A region as JSON, its stamp in seconds since t0 (absolute clock times do not survive the rounding)."""
+    common = {"frame": region.frame, "velocity": list(region.velocity), "stamp": region.stamp - t0}
     if isinstance(region, Ellipse):
         return {"kind": "ellipse", "center": list(region.center), "semi_axes": list(region.semi_axes),
                 "yaw": region.yaw, **common}
@@ -126,6 +128,8 @@ def report_data(run: RecordedRun, bag: Bag, settings: ControllerSettings, label:
             indices.append(table.index(region))
         active.append(indices)
     cert = run.certificate
+    times = run.times if run.times is not None else np.arange(len(run.x)) * settings.sample_time
+    t0 = float(times[0])
     data = {
         "label": label, "plane": list(plane), "state_names": list(model.state_names),
         "input_names": list(model.input_names), "sample_time": settings.sample_time,
@@ -135,8 +139,8 @@ def report_data(run: RecordedRun, bag: Bag, settings: ControllerSettings, label:
         "certificate": {k: cert[k] for k in ("value_function", "decrease", "decrease_bound")} if cert else {},
         "violated": [bool(v) for v in cert["violated"]] if cert else [],
         "prediction": predictions(bag, run, plane),
-        "regions": [region_entry(r) for r in table], "active": active,
-        "times": run.times if run.times is not None else np.arange(len(run.x)) * settings.sample_time,
+        "regions": [region_entry(r, t0) for r in table], "active": active,
+        "times": np.asarray(times, float) - t0,
         "horizon": settings.horizon,
         "keep_in": keep_in_grid(settings, plane_box(settings, xs)),
         "box": plane_box(settings, xs),

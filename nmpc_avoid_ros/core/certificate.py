@@ -22,12 +22,14 @@ is scored with the cost of the plan it applied, and says so in `cost_source`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .controller import NmpcController, StepResult
+from .regions import Region
 from .status import StepStatus
 
 #: the per-sample vector of `~/certificate` (std_msgs/Float64MultiArray), in this order
@@ -95,6 +97,42 @@ class CertificateSample:
                 "cost_source": self.cost_source, "level": self.level}
 
 
+#: two poses of a region agree when their numbers do to this (relative and absolute; stamps are float
+#: seconds of a ~1e9 s clock, resolved to ~2e-7 s)
+POSE_TOLERANCE = 1e-6
+
+
+def _numbers(value: object) -> list:
+    """The numbers and strings of a nested dataclass tuple, flattened."""
+    if isinstance(value, (tuple, list)):
+        return [v for item in value for v in _numbers(item)]
+    return [value]
+
+
+def same_trajectory(a: Region, b: Region, time: float | None) -> bool:
+    """The same region moving the same way: equal, or (moving) equal poses at `time` and equal velocities.
+
+    An obstacle re-published with a new stamp and the centre it has then is the same trajectory.
+    """
+    if a == b:
+        return True
+    if type(a) is not type(b) or time is None or not (a.moving or b.moving):
+        return False
+    pa, pb = _numbers(dataclasses.astuple(a.at(time))), _numbers(dataclasses.astuple(b.at(time)))
+    if len(pa) != len(pb) or [v for v in pa if isinstance(v, str)] != [v for v in pb if isinstance(v, str)]:
+        return False
+    fa = np.array([v for v in pa if not isinstance(v, str)], float)
+    fb = np.array([v for v in pb if not isinstance(v, str)], float)
+    return bool(np.allclose(fa, fb, rtol=POSE_TOLERANCE, atol=POSE_TOLERANCE))
+
+
+def previous_key_matches(previous: tuple, key: tuple, time: float | None) -> bool:
+    """Assumption P between two samples: equal parameters (but x(0) and the slots), equal prediction
+    switch, and the same regions (`same_trajectory`, in order)."""
+    return (np.array_equal(previous[0], key[0]) and previous[2] == key[2] and len(previous[1]) == len(key[1])
+            and all(same_trajectory(a, b, time) for a, b in zip(previous[1], key[1])))
+
+
 @dataclass
 class _Previous:
     """What the next sample is checked against: V_N of this one, its parameter key and its plan."""
@@ -140,12 +178,13 @@ class StabilityCertificate:
         # stamp and velocity are)
         key = (par[n:par.size - self.controller.nlp.slot_layout.size].copy(), self.controller.regions,
                self.controller.settings.predict_obstacles)
+        unchanged = previous_key_matches(self._previous.key, key, time) if self._previous is not None else False
         previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:
             return self._unchecked(value, source, "first sample")
         plan = previous.result
         mismatch = float(np.max(np.abs(result.states[0] - plan.states[1])))
-        if not (np.array_equal(previous.key[0], key[0]) and previous.key[1:] == key[1:]):
+        if not unchanged:
             return self._unchecked(value, source, "parameters changed (target, regions or weights)", mismatch)
         # the previous plan shifted (u(1..N-1), u_a; x(2..N), x_a), started at its own x(1) (the
         # nominal successor) and costed with this sample's parameters (moving regions at this
