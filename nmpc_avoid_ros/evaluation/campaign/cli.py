@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from ...core.closed_loop import PLANTS
-from ...core.errors import ConfigError, NmpcError
+from ...core.errors import NmpcError
 from ...core.settings import load_params_file
 from .running import (
     JSON_NAME,
@@ -176,10 +176,8 @@ def _run(args: argparse.Namespace, runs: Sequence[tuple[Path, dict, dict]], task
     except KeyboardInterrupt:
         print("campaign: interrupted; rerun with the same --out to resume", file=sys.stderr)
         return 130
-    except (OSError, TimeoutError) as exc:
-        return _fail(f"cannot reach the Dask scheduler at {args.scheduler}: {exc}".replace("\n", " "))
-    except ConfigError as exc:
-        return _fail(str(exc))
+    except (NmpcError, OSError) as exc:  # an unreachable scheduler, a full disk: the records so far are kept
+        return _fail(str(exc).replace("\n", " "))
     finally:
         bar.close()
         for f in files:

@@ -84,6 +84,10 @@ class CampaignFileError(ConfigError):
     """A campaign file that cannot be read as written (the file is left untouched)."""
 
 
+class SchedulerUnreachable(ConfigError):
+    """The Dask scheduler given did not answer in time."""
+
+
 def read_jsonl(path: Path) -> dict[str, dict[str, Any]]:
     """Finished records by id; a torn last line (a write cut by a kill) is ignored, any other
     unreadable line raises CampaignFileError (the file may not be appended to blindly)."""
@@ -156,7 +160,11 @@ def run_dask(tasks: Sequence[tuple[dict[str, Any], RunSetup]], sink: Sink, bar: 
 
     cluster = None
     if scheduler:
-        client = Client(scheduler, timeout=connect_timeout)
+        try:
+            client = Client(scheduler, timeout=connect_timeout)
+        except (OSError, TimeoutError) as exc:
+            reason = str(exc).replace("\n", " ")
+            raise SchedulerUnreachable(f"cannot reach the Dask scheduler at {scheduler}: {reason}") from None
         if not client.scheduler_info().get("workers"):
             print(f"campaign: no worker at {scheduler} yet; waiting for one (`dask worker {scheduler}`)",
                   file=sys.stderr, flush=True)
