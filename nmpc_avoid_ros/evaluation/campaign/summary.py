@@ -214,8 +214,11 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"  stop short {s['stop_short']} {s['stop_short_causes']} distance median "
             f"{_fmt(ss['median'])} max {_fmt(ss['max'])}; solve max {s['solve_ms_max']:.0f} ms",
             f"  penetration after the first step {_fmt(s['penetration_after_first_step'])} (x0 in X_N; all runs "
-            f"{_fmt(s['penetration_after_first_step_all_runs'])}), after fallbacks {_fmt(s['fallback_penetration'])}; "
-            f"fallbacks by candidate {s['fallback_kinds']}; escapes tried {s['escapes_tried']}, taken "
+            f"{_fmt(s['penetration_after_first_step_all_runs'])}; regions avoidable from x0 "
+            f"{_fmt(s['penetration_after_first_step_avoidable_start'])}, unavoidable in "
+            f"{s['runs_unavoidable_at_start']} runs), after fallbacks {_fmt(s['fallback_penetration'])} "
+            f"(avoidable start {_fmt(s['fallback_penetration_avoidable_start'])})",
+            f"  fallbacks by candidate {s['fallback_kinds']}; escapes tried {s['escapes_tried']}, taken "
             f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs",
         ]
         if s.get("certificate_checked"):
