@@ -140,7 +140,24 @@ def pick_examples(records: Sequence[Mapping[str, Any]], limit: int = 4) -> list[
     return out
 
 
-def examples_plot(records: Sequence[Mapping[str, Any]], fam: str, path: Path) -> Path | None:
+def draw_moving(ax: plt.Axes, regions: Sequence[Region], x: np.ndarray, sample_time: float) -> None:
+    """Moving regions: faint at the start, their centres' tracks dashed, solid at the closest approach
+    to the run's positions x [K+1, 2+] (each region where it was at that sample, k Ts)."""
+    times = np.arange(len(x)) * sample_time
+    for region in regions:
+        track = np.array([region.at(t).reference_point for t in times])
+        depths = [region.at(t).depth(p[:2]) for t, p in zip(times, x)]
+        closest = int(np.argmax(depths))
+        draw_region(ax, region, alpha=0.15)
+        ax.plot(track[:, 0], track[:, 1], "--", lw=0.8, color="tab:red")
+        draw_region(ax, region.at(times[closest]), alpha=0.5, edge="darkred")
+        ax.plot(*x[closest, :2], "o", ms=6, mfc="none", mec="darkred")
+        ax.annotate(f"{times[closest]:.1f} s", tuple(x[closest, :2]), textcoords="offset points", xytext=(4, 4),
+                    fontsize=6, color="darkred")
+
+
+def examples_plot(records: Sequence[Mapping[str, Any]], fam: str, path: Path,
+                  settings: ControllerSettings | None = None) -> Path | None:
     """Phase portraits (van der Pol) or paths (robot) of a few illustrative scenarios."""
     picks = pick_examples([r for r in records if r["family"] == fam])
     if not picks:
@@ -164,8 +181,12 @@ def examples_plot(records: Sequence[Mapping[str, Any]], fam: str, path: Path) ->
             ax.add_patch(plt.Rectangle((-10, -10), 20, 20, fill=False, ec="k", lw=0.8))
             target_pt, best_pt, adm_pt = rec["spec"]["target"], rec["y_star"], rec["y_admissible"]
             ax.set_aspect("equal")
-        for region in _regions(rec):
-            draw_region(ax, region, alpha=0.45)
+        regions = _regions(rec)
+        for region in regions:
+            if not region.moving:
+                draw_region(ax, region, alpha=0.45)
+        if settings is not None and any(r.moving for r in regions):
+            draw_moving(ax, [r for r in regions if r.moving], x, settings.sample_time)
         ax.plot(x[:, 0], x[:, 1], "-o", ms=2, lw=1.3, color="tab:blue", label="closed loop")
         ax.plot(x[0, 0], x[0, 1], "ks", ms=6, label="start")
         ax.plot(*target_pt, "kx", ms=9, mew=2, label="target y_t")
@@ -190,7 +211,7 @@ def write_plots(out: Path, records: Sequence[Mapping[str, Any]], configs: Mappin
     paths = [final_error_plot(records, out / "final_error.png"), penetration_plot(records, out / "penetration.png"),
              solve_time_plot(records, settings, out / "solve_time.png")]
     for fam in _families(records):
-        p = examples_plot(records, fam, out / f"examples_{fam}.png")
+        p = examples_plot(records, fam, out / f"examples_{fam}.png", settings.get(fam))
         if p is not None:
             paths.append(p)
     return paths
