@@ -146,7 +146,7 @@ def test_broken_files_get_a_clear_error_not_a_traceback(tmp_path, content, tool)
 
 
 def test_a_bag_without_controller_topics_gets_a_clear_error(demo_out, tmp_path):
-    from nmpc_avoid_ros.bag.mcap_io import Ros2McapWriter
+    from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
 
     only_state = tmp_path / "state_only.mcap"
     from std_msgs.msg import Float64MultiArray

@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
-from nmpc_avoid_ros.bag.mcap_io import MAGIC, BagError, Ros2McapWriter, load_bag, read_bag
+from nmpc_avoid_ros.bag.mcap_io import MAGIC, BagError, load_bag, read_bag
+from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
 
 CHUNK_OPCODE, DATA_END_OPCODE = 0x06, 0x0F
 

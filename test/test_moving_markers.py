@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from visualization_msgs.msg import MarkerArray
 
 from nmpc_avoid_ros.bag.analysis import load_run, run_metrics
-from nmpc_avoid_ros.bag.mcap_io import Ros2McapWriter
+from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
 from nmpc_avoid_ros.core.motion import VelocityEstimator
 from nmpc_avoid_ros.core.regions import Ellipse, rotated_box
 from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file

@@ -1,4 +1,4 @@
-"""The MCAP writer/reader (nmpc_avoid_ros.bag.mcap_io) and the recorder node through real DDS.
+"""The MCAP writer/reader (nmpc_avoid_ros.bag.mcap_writer, .mcap_io) and the recorder node through real DDS.
 
 Bags are read back with independent readers: `rosbags` (its own MCAP parser and .msg type system)
 for finished files, the `mcap` library's stream reader for files cut short by kill -9.
@@ -31,15 +31,9 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
-from nmpc_avoid_ros.bag.mcap_io import (
-    SEPARATOR,
-    BagError,
-    Ros2McapWriter,
-    field_dependencies,
-    load_bag,
-    message_definition,
-    read_bag,
-)
+from nmpc_avoid_ros.bag.mcap_io import BagError, load_bag, read_bag
+from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
+from nmpc_avoid_ros.bag.msg_definitions import SEPARATOR, field_dependencies, message_definition
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 from nmpc_avoid_ros.tools.processes import NodeProcess
 

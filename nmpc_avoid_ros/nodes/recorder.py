@@ -31,7 +31,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.subscription import Subscription
 
-from ..bag.mcap_io import COMPRESSIONS, DEFAULT_CHUNK_SIZE, BagError, Ros2McapWriter
+from ..bag.mcap_io import BagError
+from ..bag.mcap_writer import COMPRESSIONS, DEFAULT_CHUNK_SIZE, Ros2McapWriter
 from ..core.errors import ConfigError
 from ..ros.parameters import ParamSpec, declare
 from .runner import run_node
