@@ -163,6 +163,27 @@ def test_a_bag_without_controller_topics_gets_a_clear_error(demo_out, tmp_path):
         assert len([line for line in res.stderr.splitlines() if "error" in line]) == 1
 
 
+def test_a_controller_sample_with_an_unknown_status_gets_a_clear_error(tmp_path):
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
+
+    def sample(status: str) -> DiagnosticArray:
+        values = {"state": "[1.0, 0.0]", "command": "[0.0]", "y_a": "[0.0]", "solve_time_ms": "1.0",
+                  "status": status}
+        return DiagnosticArray(status=[DiagnosticStatus(values=[KeyValue(key=k, value=v)
+                                                                for k, v in values.items()])])
+
+    bag = tmp_path / "odd_status.mcap"
+    with Ros2McapWriter(bag) as writer:
+        for k, status in enumerate(["ok", "fallback_recovery", "panic"]):
+            writer.write_message("/diagnostics", sample(status), k + 1)
+    with pytest.raises(Exception, match="unknown status.*panic.*known: ok, truncated, fallback_shift"):
+        load_run(bag)
+    res = cli("analyze", str(bag), "--out", str(tmp_path / "o"))
+    assert res.returncode == 1 and "panic" in res.stderr and "Traceback" not in res.stderr
+
+
 def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline_mu_0_loop(demo_out, paper, tmp_path):
     for name in RUNS:
         res = cli("replay", str(demo_out / f"{name}.mcap"), "--closed-loop", "--json", str(tmp_path / f"{name}.json"))

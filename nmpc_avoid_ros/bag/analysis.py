@@ -20,6 +20,7 @@ from ..core.metrics import max_abs_product, outputs, penetration, region_values,
 from ..core.models import make_model
 from ..core.regions import Region
 from ..core.settings import ControllerSettings
+from ..core.status import StepStatus
 from .mcap_io import Bag, BagError, load_bag
 
 
@@ -95,6 +96,15 @@ def _topic(bag: Bag, suffix: str) -> str | None:
     return None
 
 
+def _statuses(path: str | Path, samples: list[tuple[int, dict[str, str]]]) -> list[StepStatus]:
+    """The samples' statuses; BagError naming the first one that is no `StepStatus`."""
+    try:
+        return [StepStatus(v["status"]) for _, v in samples]
+    except ValueError as exc:
+        raise BagError(f"{path}: a controller sample has an unknown status ({exc}; known: "
+                       f"{', '.join(StepStatus)})") from None
+
+
 def _float_list(text: str) -> list[float]:
     """A diagnostic's list of floats; Python's repr writes NaN (a sample without a plan) as nan."""
     return json.loads(text.replace("nan", "NaN").replace("inf", "Infinity"))
@@ -161,7 +171,7 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         targets=np.array([v + [math.nan] * (width - len(v)) for v in targets]),
         regions=regions,
         solve_ms=np.array([float(v["solve_time_ms"]) for _, v in samples]),
-        status=[v["status"] for _, v in samples],
+        status=_statuses(path, samples),
         counters={k: int(samples[-1][1][k]) for k in ("fallbacks", "rejected_inputs", "deadline_overruns", "stale",
                                                        "samples", "certificate_violations") if k in samples[-1][1]},
         final_state=final_state,
@@ -195,7 +205,7 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
         metrics["max_abs_x1x2"] = max_abs_product(xs)
     metrics["solve_ms"] = time_stats(run.solve_ms)
     metrics["deadline_overruns"] = int(np.sum(run.solve_ms > settings.sample_time * 1e3))
-    metrics["fallbacks"] = sum(s.startswith("fallback") for s in run.status)
+    metrics["fallbacks"] = sum(StepStatus(s).is_fallback for s in run.status)
     metrics["rejected_inputs"] = run.counters.get("rejected_inputs", 0)
     metrics["stale_samples"] = run.counters.get("stale", 0)
     cert = run.certificate

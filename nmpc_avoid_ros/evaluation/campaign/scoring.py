@@ -71,7 +71,7 @@ PROBE_SOLVE_TIME = 20.0
 STATUS_CODES = {StepStatus.OK: ".", StepStatus.TRUNCATED: "t", StepStatus.FALLBACK_SHIFT: "s",
                 StepStatus.FALLBACK_STEADY: "S", StepStatus.FALLBACK_SAFE: "X", StepStatus.FALLBACK_RECOVERY: "R"}
 #: the fallback candidates (core/fallback.py), as statuses
-FALLBACK_KINDS = tuple(f"fallback_{kind}" for kind in FALLBACK_CANDIDATES)
+FALLBACK_KINDS = tuple(StepStatus(f"fallback_{kind}") for kind in FALLBACK_CANDIDATES)
 #: penetration from this sample on is where the input can act (x(1) is fixed by x(0), u(0) partly)
 FIRST_ACTED_SAMPLE = 2
 #: record fields measured in wall time (machine- and load-dependent); ('trace', 'solve_ms') is nested
