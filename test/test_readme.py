@@ -58,3 +58,11 @@ def test_readme_lists_every_step_status():
 def test_readme_names_the_counters_the_controller_publishes():
     keys = readme_diagnostic_keys()
     assert {"status", "nlp_builds", "samples", "fallbacks", "stale"} <= keys  # the parser found the paragraph
+
+
+def test_the_results_section_lists_every_kept_result_and_each_exists():
+    rows = first_column(readme_section("## Results: where each one lives and which command made it"))
+    listed = {path for row in rows for path in ROOT.glob(row)}
+    assert len(rows) >= 4 and all((ROOT / row).is_file() for row in rows if "*" not in row), rows
+    kept = set((ROOT / "bench").glob("results.*")) | {p for p in (ROOT / "docs" / "campaign").rglob("*") if p.is_file()}
+    assert kept - listed == set()
