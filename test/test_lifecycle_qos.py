@@ -5,6 +5,7 @@ controller that joins late."""
 from __future__ import annotations
 
 import json
+import re
 import time
 
 import numpy as np
@@ -128,7 +129,14 @@ def test_volatile_and_transient_local_publishers_and_a_late_joining_controller(r
     latched.publish(Float64MultiArray(data=[2.0]))
     assert listen.spin_until(lambda: "[2.0]" in ctrl.output(), 10)
     drive_to(2.0, 40)
+    burst = [2.1, 2.2, 2.3, 2.4, 2.5]  # back to back: each applied once, in order (both readers queue them)
+    for value in burst:
+        latched.publish(Float64MultiArray(data=[value]))
+    assert listen.spin_until(lambda: "[2.5]" in ctrl.output(), 10)
+    p.spin_for(0.5)
     out = ctrl.output()
+    applied = [float(v) for v in re.findall(r"target y_t = \[([-0-9.]+)\]", out)]
+    assert applied[-len(burst):] == burst and applied.count(2.1) == 1, applied
     assert out.count("target y_t = [1.0]") == 1 and out.count("target y_t = [2.0]") == 1, out[-3000:]
     assert "incompatible QoS" not in out
     assert ctrl.stop() == 0

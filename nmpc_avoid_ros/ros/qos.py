@@ -15,6 +15,13 @@ the latched value) and a VOLATILE one (every publisher matches it). A sample of 
 publisher reaches both; the second copy is recognised by its (source timestamp, publication
 sequence number) and dropped before it is deserialised (a large MarkerArray costs its
 deserialisation once), so the callback sees every sample once.
+
+Order: both readers keep the last 10 samples and the latched one is created first, so within one
+executor round it is served first. A burst from a transient-local publisher then sits in both
+queues alike and is applied in order; with a latched reader of depth 1 the burst's last sample
+overtook its first (measured: a velocity estimate from two quick marker updates went backwards).
+A latched publisher with a history deeper than 1 that also publishes while the controller joins
+could still interleave its history with the live samples; the package's publishers keep 1.
 """
 
 from __future__ import annotations
@@ -28,11 +35,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from .parameters import LATCHED_QOS
-
 #: the accept-everything reader: keep 10 so a burst of incremental obstacle updates is not cut
 VOLATILE_INPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                                 durability=DurabilityPolicy.VOLATILE)
+#: the late-joiner reader: transient local, and as deep as the volatile one (see "Order" above)
+LATE_JOINER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: samples remembered for the duplicate check (both copies of a sample arrive within a few spins)
 _REMEMBERED = 64
 
@@ -49,7 +57,8 @@ class LatchedSubscription:
         # them, so rclpy's default "incompatible QoS" warning would only mislead the user
         quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _event: None)
         self.subscriptions = [
-            node.create_subscription(msg_type, topic, self._receive, LATCHED_QOS, event_callbacks=quiet, raw=True),
+            node.create_subscription(msg_type, topic, self._receive, LATE_JOINER_QOS, event_callbacks=quiet,
+                                     raw=True),
             node.create_subscription(msg_type, topic, self._receive, VOLATILE_INPUT_QOS, raw=True),
         ]
 
