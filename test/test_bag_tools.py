@@ -185,15 +185,16 @@ def test_a_controller_sample_with_an_unknown_status_gets_a_clear_error(tmp_path)
 
 
 def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline_mu_0_loop(demo_out, paper, tmp_path):
+    from nmpc_avoid_ros.tools.replay import main as replay_main  # in process: no interpreter start per call
+
     for name in RUNS:
-        res = cli("replay", str(demo_out / f"{name}.mcap"), "--closed-loop", "--json", str(tmp_path / f"{name}.json"))
-        assert res.returncode == 0, res.stderr
+        out = tmp_path / f"{name}.json"
+        assert replay_main([str(demo_out / f"{name}.mcap"), "--closed-loop", "--json", str(out)]) == 0
         same = json.loads((tmp_path / f"{name}.json").read_text())
         assert same["replay"]["max_state_error"] <= 1e-6 and len(same["u"]) >= 50
         assert same["summary"]["certificate_violations"] == 0
-    res = cli("replay", str(demo_out / "with_avoidance.mcap"), "--closed-loop", "--mu", "0", "--json",
-              str(tmp_path / "mu0.json"), "--out", str(tmp_path / "mu0"))
-    assert res.returncode == 0, res.stderr
+    assert replay_main([str(demo_out / "with_avoidance.mcap"), "--closed-loop", "--mu", "0", "--json",
+                        str(tmp_path / "mu0.json"), "--out", str(tmp_path / "mu0")]) == 0
     mu0 = json.loads((tmp_path / "mu0.json").read_text())
     offline = paper(0.0, "euler")
     np.testing.assert_allclose(np.array(mu0["x"])[:51], offline.x, atol=1e-9)
@@ -205,19 +206,21 @@ def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline
         assert (tmp_path / "mu0" / figure).stat().st_size > 10_000, figure
 
 
-def test_closed_loop_sweep_gives_a_table_and_a_figure_and_refuses_what_cannot_be_swept(demo_out, tmp_path):
+def test_closed_loop_sweep_gives_a_table_and_a_figure_and_refuses_what_cannot_be_swept(demo_out, tmp_path, capsys):
+    from nmpc_avoid_ros.tools.replay import main as replay_main  # in process: no interpreter start per call
+
     bag = str(demo_out / "with_avoidance.mcap")
-    res = cli("replay", bag, "--closed-loop", "--sweep", "mu=0,1e8", "--out", str(tmp_path / "s"))
-    assert res.returncode == 0, res.stderr
+    assert replay_main([bag, "--closed-loop", "--sweep", "mu=0,1e8", "--out", str(tmp_path / "s")]) == 0
+    assert "| mu=0 | 18 |" in capsys.readouterr().out
     rows = [line for line in (tmp_path / "s" / "sweep.md").read_text().splitlines() if line.startswith("| mu=")]
     assert [r.split("|")[1].strip() for r in rows] == ["mu=0", "mu=1e+08"]
     assert rows[0].split("|")[2].strip() == "18" and rows[1].split("|")[2].strip() == "33"
     assert (tmp_path / "s" / "sweep.png").stat().st_size > 10_000
     for sweep, words in (("foo=1,2", "unknown setting"), ("horizon=5,10", "structural"), ("mu=1,x", "numbers"),
                          ("mu=-1", "mu")):
-        res = cli("replay", bag, "--closed-loop", "--sweep", sweep)
-        assert res.returncode == 1 and words in res.stderr and "Traceback" not in res.stderr, (sweep, res.stderr)
-        assert len(res.stderr.strip().splitlines()) == 1
+        assert replay_main([bag, "--closed-loop", "--sweep", sweep]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("replay: error:") and words in err and len(err.strip().splitlines()) == 1, (sweep, err)
 
 
 def test_replay_republishes_the_recorded_topics_with_their_timing(demo_out, ros_graph):
