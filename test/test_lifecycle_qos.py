@@ -140,3 +140,31 @@ def test_volatile_and_transient_local_publishers_and_a_late_joining_controller(r
     assert out.count("target y_t = [1.0]") == 1 and out.count("target y_t = [2.0]") == 1, out[-3000:]
     assert "incompatible QoS" not in out
     assert ctrl.stop() == 0
+
+
+def test_parameters_set_while_unconfigured_are_checked_then_applied_at_configure(tmp_path, monkeypatch):
+    """In process, no graph needed: an unconfigured controller refuses bad values with the reason,
+    keeps good ones, builds nothing, and configure uses them."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from nmpc_avoid_ros.nodes.controller import SUCCESS, ControllerNode
+
+    monkeypatch.setenv("ROS_LOG_DIR", str(tmp_path))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    context = rclpy.Context()
+    rclpy.init(args=["controller", *PARAMS, "-p", "autostart:=false"], context=context, domain_id=200)
+    node = ControllerNode(context=context)
+    try:
+        assert node.controller is None  # nothing built
+        (bad,) = node.set_parameters([Parameter("mu", value=-1.0)])
+        assert not bad.successful and "mu" in bad.reason
+        (bad,) = node.set_parameters([Parameter("deactivate_command", value="nope")])
+        assert not bad.successful
+        assert all(r.successful for r in node.set_parameters([Parameter("mu", value=5.0),
+                                                                Parameter("deactivate_command", value="hold_steady")]))
+        assert node.trigger_configure() == SUCCESS
+        assert node.controller.settings.mu == 5.0 and node.options.deactivate_command == "hold_steady"
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
