@@ -514,3 +514,24 @@ def test_disk_full_while_recording_exits_non_zero_and_keeps_the_written_chunks(r
     assert not bag.finished and bag.chunks >= 5
     values = [m.data[0] for _, m in bag.topics["/state"]]
     assert values == [float(k) for k in range(len(values))]
+
+
+def test_a_volatile_publisher_on_a_latched_topic_is_recorded_from_its_first_sample(ros_graph, recorder, tmp_path):
+    """`ros2 topic pub --once target` (volatile) publishes as soon as any reader matches; the
+    recorder's volatile companion reader records it at once; a latched sample is written once."""
+    _domain, _env, _start, probe = ros_graph
+    p = probe()
+    latched = p.node.create_publisher(Float64MultiArray, "target", LATCHED_QOS)
+    latched.publish(floats(1.0))
+    out = tmp_path / "latched.mcap"
+    rec = recorder("-p", f"output:={out}")
+    assert p.spin_until(lambda: latched.get_subscription_count() >= 2, 30), rec.output()  # both readers
+    latched.publish(floats(2.0))
+    volatile = p.node.create_publisher(Float64MultiArray, "target", QoSProfile(depth=10))  # `ros2 topic pub`
+    wait_matched(p, [volatile])
+    volatile.publish(floats(3.0))  # at once, before any graph poll of the recorder
+    p.spin_for(1.0)
+    assert rec.stop() == 0, rec.output()
+    values = [m.data[0] for _, m in load_bag(out).topics["/target"]]
+    assert sorted(values) == [1.0, 2.0, 3.0], values
+    assert "incompatible QoS" not in rec.output()

@@ -7,8 +7,11 @@ node-clock receive time as log time (ns; sim time when use_sim_time) and the pub
 timestamp as publish time. Topic types come from the ROS graph: a timer polls it and subscribes
 as soon as a wanted topic has a publisher (the `types` parameter, ``topic=pkg/msg/Type``, lets a
 topic be subscribed before any publisher exists). QoS: `latched_topics` (target, obstacles)
-reliable + transient local, depth 1; the others reliable, depth `queue_depth`; downgraded to
-volatile / best effort only when a publisher offers that, so that every publisher matches.
+reliable + transient local, depth 1, plus a volatile reader of depth `queue_depth` so that a volatile
+publisher's first sample (`ros2 topic pub --once`, which the controller accepts at once) is not
+lost before the graph poll sees that publisher; a sample both readers get is written once. The
+others reliable, depth `queue_depth`; downgraded to volatile / best effort only when a publisher
+offers that, so that every publisher matches.
 
 `output`: a .mcap path, or a directory (then rosbag2 naming ``<dir>/<dir>_0.mcap``). With
 `split_size` or `split_duration`, files are numbered ``<stem>_0.mcap``, ``<stem>_1.mcap``, ...
@@ -21,12 +24,14 @@ from __future__ import annotations
 import importlib
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.subscription import Subscription
@@ -54,7 +59,8 @@ RECORDER_SPECS = [
               read_only=True),
     ParamSpec("types", None, "topic=pkg/msg/Type entries: subscribe before a publisher exists (the graph's type "
               "wins when they differ)", ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
-    ParamSpec("latched_topics", ["target", "obstacles"], "topics subscribed transient local with depth 1",
+    ParamSpec("latched_topics", ["target", "obstacles"], "topics subscribed transient local with depth 1 (plus a "
+              "volatile reader, so volatile publishers are recorded from their first sample)",
               ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
     ParamSpec("queue_depth", 1000, "subscription depth of the other topics, messages (a slow disk must lose "
               "nothing)", ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(1, 1_000_000)),
@@ -101,6 +107,11 @@ class _Topic:
     msg_class: type
     qos: QoSProfile
     subscription: Subscription | None = None
+    # a latched topic subscribed transient local also has a volatile reader, so that a volatile
+    # publisher's first sample (`ros2 topic pub --once`) is recorded before the graph poll sees it;
+    # a sample both readers get is written once (recent keys: source timestamp, sequence number)
+    companion: Subscription | None = None
+    recent: deque = field(default_factory=lambda: deque(maxlen=64))
     count: int = 0
     publishers: int = 0
     last_sequence: int | None = None
@@ -241,9 +252,18 @@ class RecorderNode(Node):
                 log.error(f"cannot record {name}: {exc}")
             return
         topic = _Topic(name, type_name, msg_class, self._qos_for(name))
-        topic.subscription = self.create_subscription(msg_class, name, self._callback(topic), topic.qos, raw=True)
+        latched = topic.qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        # volatile writers are refused by the latched reader by design (the companion takes them)
+        quiet = SubscriptionEventCallbacks(incompatible_qos=lambda _event: None) if latched else None
+        topic.subscription = self.create_subscription(msg_class, name, self._callback(topic), topic.qos, raw=True,
+                                                      event_callbacks=quiet)
+        if latched:
+            volatile = QoSProfile(depth=self.queue_depth, history=HistoryPolicy.KEEP_LAST,
+                                  reliability=topic.qos.reliability, durability=DurabilityPolicy.VOLATILE)
+            topic.companion = self.create_subscription(msg_class, name, self._callback(topic), volatile, raw=True)
         self.topics[name] = topic
-        log.info(f"recording {name} [{type_name}] ({_describe(topic.qos)})")
+        log.info(f"recording {name} [{type_name}] ({_describe(topic.qos)}"
+                 f"{'; and volatile publishers' if topic.companion else ''})")
 
     def _check(self, topic: _Topic, types: list[str]) -> None:
         """A new publisher may need a weaker subscription to match (volatile, best effort): resubscribe."""
@@ -255,6 +275,10 @@ class RecorderNode(Node):
         if qos.reliability != topic.qos.reliability or qos.durability != topic.qos.durability:
             self.take(topic, 1 << 30)  # keep what the old subscription already holds
             self.destroy_subscription(topic.subscription)
+            if topic.companion is not None:  # the new subscription is volatile: it takes every writer
+                self.take(topic, 1 << 30, topic.companion)
+                self.destroy_subscription(topic.companion)
+                topic.companion = None
             topic.qos = qos
             topic.subscription = self.create_subscription(topic.msg_class, topic.name, self._callback(topic), qos,
                                                           raw=True)
@@ -267,9 +291,10 @@ class RecorderNode(Node):
 
         return on_message
 
-    def take(self, topic: _Topic, limit: int) -> int:
-        """Take up to `limit` queued messages of one topic straight from its subscription and record them."""
-        sub = topic.subscription
+    def take(self, topic: _Topic, limit: int, sub: Subscription | None = None) -> int:
+        """Take up to `limit` queued messages of one topic straight from its subscription (or `sub`)
+        and record them."""
+        sub = sub or topic.subscription
         taken = 0
         while sub is not None and taken < limit and self.error is None:
             with sub.handle:  # the executor's own way to take a message (rclpy Executor._take_subscription)
@@ -283,9 +308,15 @@ class RecorderNode(Node):
     # ---- writing
 
     def record(self, topic: _Topic, data: bytes, info: dict) -> None:
-        """Append one serialized message (log time = node clock now, ns)."""
+        """Append one serialized message (log time = node clock now, ns); a copy already written (a
+        latched topic's two readers) is dropped."""
         if self.error is not None:
             return
+        key = (info.get("source_timestamp"), info.get("publication_sequence_number"))
+        if topic.companion is not None and all(key):
+            if key in topic.recent:
+                return
+            topic.recent.append(key)
         now = self.get_clock().now().nanoseconds
         try:
             if self._split_due(now):
