@@ -66,3 +66,6 @@ def test_the_results_section_lists_every_kept_result_and_each_exists():
     assert len(rows) >= 4 and all((ROOT / row).is_file() for row in rows if "*" not in row), rows
     kept = set((ROOT / "bench").glob("results.*")) | {p for p in (ROOT / "docs" / "campaign").rglob("*") if p.is_file()}
     assert kept - listed == set()
+    # every further campaign or sweep folder says what it ran and with which command
+    folders = [d for d in (ROOT / "docs" / "campaign").iterdir() if d.is_dir()]
+    assert [d.name for d in folders if not (d / "README.md").is_file()] == []
