@@ -58,7 +58,9 @@ def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo
     # lockstep: one command, one prediction, one diagnostic per state answered, one clock tick per state
     assert counts["/command"] == counts["/controller/prediction"] == counts["/diagnostics"] == \
         counts["/controller/certificate"]
-    assert counts["/state"] >= 51 and counts["/clock"] == counts["/state"]
+    # the lockstep plant stops after the demo's 50 samples (max_steps): x(0..50), a clock tick for each,
+    # and nothing in flight when the nodes are stopped
+    assert counts["/state"] == 51 and counts["/clock"] == counts["/state"]
     # at shutdown (plant stopped first) the last state can reach the controller but not the
     # recorder, or the last command the recorder but no plant: the counts differ by at most one
     assert abs(counts["/command"] - counts["/state"]) <= 1

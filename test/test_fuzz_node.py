@@ -51,11 +51,16 @@ def bad_vector(rng: random.Random, size: int) -> Float64MultiArray:
 
 
 def hostile_marker_arrays(count: int) -> list[MarkerArray]:
-    """`count` MarkerArrays of up to 8 markers each from test_fuzz_inputs' hostile strategy, reproducibly."""
+    """`count` MarkerArrays of 2 to 8 markers each from test_fuzz_inputs' hostile strategy, reproducibly.
+
+    At least 2 per array by construction: derandomized generation still draws on the constants of
+    the modules loaded so far (hypothesis' constant pool), so the sizes of a run inside the whole
+    suite differ from a run alone (measured: 42 markers in the last 25 arrays vs 167).
+    """
     arrays: list[MarkerArray] = []
 
     @settings(fuzz_settings(count), phases=[Phase.generate])
-    @given(st.lists(hostile_markers(), max_size=8))
+    @given(st.lists(hostile_markers(), min_size=2, max_size=8))
     def collect(markers) -> None:
         arrays.append(MarkerArray(markers=markers))
 

@@ -53,6 +53,9 @@ PLANT_SPECS = [
               ParameterType.PARAMETER_BOOL, read_only=True),
     ParamSpec("wait_for_subscribers", 1, "lockstep: publish x0 once this many `state` subscribers are matched "
               "(controller, recorder, ...)", ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(1, 1000)),
+    ParamSpec("max_steps", 0, "lockstep: advance at most this many samples, then hold and publish nothing more "
+              "(0: no limit); a run of known length ends quiet, so stopping the nodes loses no message in flight",
+              ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(0, 10**9)),
     ParamSpec("hold_until_command", True, "real time: keep x0 until the first command arrives (the loop is closed)",
               ParameterType.PARAMETER_BOOL, read_only=True),
     ParamSpec("process_noise_std", 0.0, "std of Gaussian noise added to the state per step (state units)",
@@ -91,6 +94,7 @@ class PlantNode(Node):
         self.sim = ContinuousPlant(self.model) if integration == "continuous" else \
             DiscretePlant(self.model, self.sample_time, integration)
         self.wait_for_subscribers = int(values["wait_for_subscribers"])
+        self.max_steps = int(values["max_steps"])
         self.holding = bool(values["hold_until_command"])
         self.noise_std = float(values["process_noise_std"])
         self.rng = np.random.default_rng(int(values["noise_seed"]))
@@ -145,6 +149,9 @@ class PlantNode(Node):
             return
         self.holding = False
         if self.lockstep:
+            if self.max_steps and self.steps >= self.max_steps:
+                self.get_logger().info(f"max_steps {self.max_steps} reached: holding", once=True)
+                return
             self.advance(self.sample_time)
             self.sim_time_ns += round(self.sample_time * 1e9)
             self.publish_clock()

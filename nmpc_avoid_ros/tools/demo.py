@@ -76,7 +76,9 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
     plant_args = [*ros_args, "-p", f"lockstep:={str(lockstep).lower()}"]
     if lockstep:
         # x0 once the controller, this demo and the recorder listen
-        plant_args += ["-p", "integration:=euler", "-p", "wait_for_subscribers:=3"]
+        # and exactly `steps` samples: the loop then falls quiet, so no clock/state pair is in flight
+        # when the nodes are stopped (the bag holds x(0..steps) and a clock tick for each)
+        plant_args += ["-p", "integration:=euler", "-p", "wait_for_subscribers:=3", "-p", f"max_steps:={steps}"]
     recorder_args = ["--ros-args", "-p", f"output:={bag}", "-p", "overwrite:=true", "-p",
                      f"types:={json.dumps(RECORDED_TYPES)}"]
     recorder = NodeProcess("recorder", recorder_args, env, log_dir)
@@ -93,7 +95,8 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
                 raise NmpcError(f"the recorder exited:\n{recorder.output()[-2000:]}")
         procs.append(NodeProcess("plant", plant_args, env, log_dir))
         if lockstep:
-            needed = lambda: len(states) >= steps + 1 and len(samples) >= steps  # noqa: E731
+            # the controller has also answered x(steps): every node is idle when they are stopped
+            needed = lambda: len(states) >= steps + 1 and len(samples) >= steps + 1  # noqa: E731
         else:
             needed = lambda: len(samples) >= steps + 1  # noqa: E731
         while not needed() and time.monotonic() < deadline:
