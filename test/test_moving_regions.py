@@ -105,3 +105,21 @@ def test_prediction_avoids_a_crossing_walker_that_the_static_assumption_hits(sol
     assert controller.nlp_builds == builds and controller.nlp.solver is solver_object
     assert predicted <= 1e-3, f"penetration {predicted} with prediction"
     assert static > 0.3, f"the static assumption should walk into the walker (depth {static})"
+
+
+def test_counterfactual_penetration_counts_a_moving_region_where_it_is_at_each_sample() -> None:
+    """replay --closed-loop's metrics: sample k is at k Ts, so a walker stamped at 0 is moved there."""
+    from nmpc_avoid_ros.core.closed_loop import ClosedLoopRun
+    from nmpc_avoid_ros.evaluation.counterfactual import loop_metrics
+
+    settings = ControllerSettings(mu=0.0, keep_in=())
+    # the walker starts at (0, -4) and moves up at 1 /s; the state sits at (0, -2), reached by the walker at t = 2
+    walker = Ellipse((0.0, -4.0), (0.5, 0.5), 0.0, "state", velocity=(0.0, 1.0), stamp=0.0)
+    K, ts = 6, 0.5
+    run = ClosedLoopRun(
+        x=np.tile([0.0, -2.0], (K + 1, 1)), u=np.zeros((K, 1)), y_a=np.zeros((K, 1)), targets=np.zeros((K, 1)),
+        solve_time=np.full(K, 1e-3), iterations=np.ones(K, int), status=["ok"] * K, solver_status=["0"] * K,
+        costs=np.zeros((K, 3)), sample_time=ts, regions=[(walker,)] * K)
+    # at its stamp the walker is 2 away (no penetration); at sample 4 (t = 2) its centre is on the state
+    assert walker.depth((0.0, -2.0)) < 0
+    assert loop_metrics(run, settings)["max_penetration"] == pytest.approx(1.0)

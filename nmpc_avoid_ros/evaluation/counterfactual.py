@@ -141,7 +141,10 @@ def loop_metrics(run: ClosedLoopRun, settings: ControllerSettings) -> dict[str, 
     out: dict[str, Any] = dict.fromkeys(COMPARED)
     if np.all(np.isfinite(target)):
         out.update({k: v for k, v in tracking(y, target, run.sample_time).items() if k in COMPARED})
-    out["max_penetration"] = penetration(settings, model, run.x, run.u, run.regions, y)["max_penetration"]
+    # the driver's sample k is at k Ts: a moving region counts where it was then, not at its last update
+    regions_then = [tuple(r.at(k * run.sample_time) for r in run.regions[min(k, len(run.regions) - 1)])
+                    for k in range(len(run.x))] if run.regions else []
+    out["max_penetration"] = penetration(settings, model, run.x, run.u, regions_then, y)["max_penetration"]
     if model.name == "van_der_pol":  # the paper's energy-rate measure
         out["max_abs_x1x2"] = max_abs_product(run.x)
     stats = time_stats(run.solve_time * 1e3)
