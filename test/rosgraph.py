@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import rclpy
+from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 
 from nmpc_avoid_ros.tools.processes import NodeProcess, isolated_env  # noqa: F401 - NodeProcess re-exported
@@ -44,6 +45,21 @@ class Probe:
 
     def spin_for(self, seconds: float) -> None:
         self.spin_until(lambda: False, seconds)
+
+    def heard_by(self, node_name: str, timeout: float) -> bool:
+        """True once `node_name` answered a get_parameters request from this probe. Matching is
+        asymmetric: our reader seeing a node's writer does not mean that writer sees our reader, so a
+        volatile message (a diagnostic) can be lost. A node answers only after it discovered our
+        response reader, announced after every reader created before this call on the same ordered,
+        reliable discovery channel: its writers then match all those readers too."""
+        client = self.node.create_client(GetParameters, f"/{node_name}/get_parameters")
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                return False
+            future = client.call_async(GetParameters.Request(names=[]))
+            return self.spin_until(future.done, timeout)
+        finally:
+            self.node.destroy_client(client)
 
     def close(self) -> None:
         self.executor.shutdown()

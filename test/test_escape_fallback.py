@@ -70,13 +70,16 @@ def test_campaign_local_minimum_scene_reaches_the_target():
     assert keep_in_penetration(run.x) <= 1e-3
 
 
+@pytest.mark.parametrize("escape_horizon", [0, 10])
 @pytest.mark.parametrize("mu,plant", [(0.0, "euler"), (1e8, "euler"), (0.0, "continuous"), (1e8, "continuous")])
-def test_the_paper_loops_never_trigger_an_escape_or_a_fallback(paper, mu, plant):
-    controller = NmpcController(ControllerSettings(mu=mu))
+def test_the_paper_loops_never_trigger_an_escape_or_a_fallback(paper, mu, plant, escape_horizon):
+    """Step-for-step the paper's loops, also with the passage mode on (the shipped van_der_pol.yaml's 10)."""
+    controller = NmpcController(ControllerSettings(mu=mu, escape_horizon=escape_horizon))
     results = []
     run = run_closed_loop(controller, PAPER_X0, PAPER_TARGET, PAPER_STEPS, plant,
                           on_step=lambda k, res: results.append(res))
     assert not any(r.escape or r.is_fallback for r in results)
+    assert all(r.horizon == 5 for r in results)
     np.testing.assert_array_equal(run.x, paper(mu, plant).x)
 
 
@@ -180,3 +183,72 @@ def test_robot_escape_guesses_detour_around_an_output_frame_ellipse_and_a_penetr
     inside_soon = np.tile([1.0, 0.0], (10, 1))  # straight into the wall
     choice = controller.fallback.check_plan(x, par, inside_soon)
     assert choice is not None and choice.kind in ("safe", "recovery") and not choice.unavoidable, choice
+
+
+#: campaign vdp-0097 (seed 0): the first solved plan rests at x1 = -2.84, the centre of ellipse 0,
+#: where g = 1 - r^2 has no gradient (predicted depth 0.83); overridden by fallbacks for a few samples,
+#: then applied: penetration 0.80 after the first step
+VDP_0097 = {"x0": [-0.953040447178152, 1.2391775655029282], "target": [-5.524784058754916],
+            "ellipses": [((-3.0814213566820685, -0.11743639460530941), (0.8551149919806487, 0.6216793404971585),
+                          2.5198647149193243),
+                         ((0.2705538793153215, -1.6127433281940355), (0.3276254175019541, 0.18340382067034627),
+                          2.2579828671827036),
+                         ((-2.5839069192943676, -0.04142387230021072), (1.2022249840685009, 0.17938126989283573),
+                          2.283507788492194)]}
+
+
+def test_a_plan_resting_at_an_ellipse_centre_is_replaced_by_a_clear_one_at_once():
+    regions = [Ellipse(c, a, yaw) for c, a, yaw in VDP_0097["ellipses"]]
+    controller = NmpcController(ControllerSettings(max_solve_time=2.0))
+    results = []
+    run = run_closed_loop(controller, VDP_0097["x0"], VDP_0097["target"], 30,
+                          regions=lambda k: regions if k == 0 else None, on_step=lambda k, res: results.append(res))
+    first = results[0]
+    assert first.status == "ok" and first.escape.split(";")[0] != "shifted", first.escape
+    assert max(e.depth(x) for e in regions for x in first.states) <= 1e-3
+    assert max(e.depth(x) for e in regions for x in run.x) <= 1e-3, "today: 0.80 after the first step"
+    assert keep_in_penetration(run.x) <= 1e-3
+    assert not any(r.is_fallback for r in results)
+
+
+#: campaign robot-0049 (seed 0): the robot starts below a gap between two ellipses; every solved plan
+#: squeezed through it (depth 0.15, with mu = 1e5 or 1e6), so the safe input held it for N samples,
+#: then one plan was applied, and so on: 81 fallbacks and penetration 0.166
+ROBOT_0049 = {"x0": [-3.790464243694913, 1.1099982604979832, 0.1154911022448991, 0.15450748089762606],
+              "target": [-5.741518639362529, 5.965017181961315],
+              "ellipses": [((-2.9415523735820113, 3.0871437037003293), (1.3194439879405677, 1.5856281900243618),
+                            0.37744803779304426),
+                           ((-5.255023735230951, 4.031896750587386), (1.1820124512004153, 1.3017882649598675),
+                            0.8753497069895746)]}
+
+
+def test_a_plan_squeezing_between_two_ellipses_is_replaced_by_a_clear_one_that_makes_progress():
+    from rosgraph import ROOT
+
+    from nmpc_avoid_ros.core.settings import load_params_file
+
+    params = load_params_file(ROOT / "config" / "mobile_robot.yaml").section("controller")
+    controller = NmpcController(ControllerSettings.from_params(params))
+    regions = [Ellipse(c, a, yaw, "output") for c, a, yaw in ROBOT_0049["ellipses"]]
+    results = []
+    run = run_closed_loop(controller, ROBOT_0049["x0"], ROBOT_0049["target"], 40,
+                          regions=lambda k: regions if k == 0 else None, on_step=lambda k, res: results.append(res))
+    assert max(e.depth(x[:2]) for e in regions for x in run.x) <= 1e-3
+    assert sum(r.is_fallback for r in results) <= 1, [r.fallback_reason for r in results if r.is_fallback]
+    start, end = (np.linalg.norm(run.x[k, :2] - ROBOT_0049["target"]) for k in (0, -1))
+    assert end < start - 1.0, "held still by overrides (today: 39 of the first 40 samples)"
+
+
+def test_a_clear_plan_beats_a_cheaper_penetrating_base_only_when_asked_to():
+    controller = NmpcController(ControllerSettings())
+    controller.set_regions([BLOCKER])
+    x, y_t = np.array([2.95, 0.0]), np.array([7.9])
+    nlp, par = controller.nlp, controller.parameters(x, y_t)
+    rest = Guess("rest", np.array([2.95]), np.tile(x, (5, 1)), np.full((5, 1), 2.95))
+    zeros = np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size)
+    # a base that claims to be cheaper than anything but predicts penetration 0.5
+    base = Solution(np.zeros(nlp.layout.n_w), *zeros, nlp, True, cost=-1.0, depth=0.5)
+    kept, tried, _ = lowest_cost(nlp, x, par, base, [rest], 1.0, 1e-6)
+    assert kept is base, tried  # by cost alone the base stays
+    best, tried, _ = lowest_cost(nlp, x, par, base, [rest], 1.0, 1e-6, clear_depth=1e-3)
+    assert best is not base and best.label == "rest" and best.depth <= 1e-3 and best.cost > base.cost, tried

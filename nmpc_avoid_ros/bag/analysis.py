@@ -28,7 +28,7 @@ from .mcap_io import Bag, BagError, load_bag
 class RecordedRun:
     """The solved samples of one controller in a bag.
 
-    Attributes: t [K] s since the first sample; x [K, n] states solved on; u [K, m] commands;
+    Attributes: t [K] s since the first sample (times - times[0]); x [K, n] states solved on; u [K, m] commands;
     y_a [K, p]; targets [K, p] (in force at each sample); regions [K] (tuples of core regions in
     force at each sample, moving ones with their velocity and stamp); solve_ms [K]; status [K];
     last diagnostic counters; final state [n] (the state after the last sample, if recorded);
@@ -150,7 +150,6 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
             cursor += 1
         targets.append(target if target is not None else [math.nan])
         regions.append(store.active(stamp * 1e-9))
-    first = samples[0][0]
     state_topic = _topic(bag, "state")
     final_state = None
     if state_topic and bag.topics.get(state_topic):
@@ -161,7 +160,11 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         hits = [i for i, x in enumerate(recorded) if x.shape == last.shape and np.array_equal(x, last)]
         later = [x for x in recorded[hits[-1] + 1:] if not np.array_equal(x, last)] if hits else []
         final_state = later[0] if later else None
-    t = np.array([(stamp - first) * 1e-9 for stamp, _ in samples])
+    # the controller's own time of each state; older bags: the diagnostic's log time
+    times = np.array([float(v["state_time"]) if "state_time" in v else stamp * 1e-9 for stamp, v in samples])
+    # t from the states' times: a diagnostic is logged a solve after its state and, in lockstep on
+    # simulated time, may already carry the next /clock tick (t went 0, 0.25, 0.75, 1.0, ...)
+    t = times - times[0]
     width = max(len(v) for v in targets)
     return RecordedRun(
         path=Path(path), finished=bag.finished, t=t,
@@ -176,8 +179,7 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
                                                        "samples", "certificate_violations") if k in samples[-1][1]},
         final_state=final_state,
         sample_time=float(np.median(np.diff(t))) if len(t) > 1 else math.nan,
-        # the controller's own time of each state; older bags: the diagnostic's log time
-        times=np.array([float(v["state_time"]) if "state_time" in v else stamp * 1e-9 for stamp, v in samples]),
+        times=times,
         certificate=_certificate([v for _, v in samples]),
         parameters={key: np.array([float(v[key]) for _, v in samples]) for key in RECORDED_PARAMETERS
                     if all(key in v for _, v in samples)},

@@ -16,6 +16,7 @@ state, where x2 = 0) nothing is tried.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -99,12 +100,8 @@ class EscapeGuesses:
         # leaves its best admissible point on the far side (beyond lambda Z the search stops)
         t = np.linspace(0.0, SEGMENT_REACH, SEGMENT_POINTS)
         Y = y_from[:, None] + (y_to - y_from)[:, None] * t[None, :]
-        x_s, u_s, depth = self._segment(Y.T.ravel(), par)
-        z = np.vstack([x_s.reshape(SEGMENT_POINTS, -1).T, u_s.reshape(SEGMENT_POINTS, -1).T])
-        in_box = np.all((z >= self._lo[:, None]) & (z <= self._hi[:, None]), axis=0)
-        depth = depth.reshape(SEGMENT_POINTS, -1)
-        blocked = np.any(depth > 0, axis=1) if depth.size else np.zeros(SEGMENT_POINTS, bool)
-        free = in_box & ~blocked
+        free, blocked = self._free(Y, par)
+        in_box = free | blocked  # a blocked point's box membership does not matter below
         beyond = []
         inside_block = False
         for k in range(SEGMENT_POINTS):
@@ -120,6 +117,55 @@ class EscapeGuesses:
             if (not in_box[k] and not blocked[k]) or (t[k] > 1.0 and not inside_block):
                 break  # beyond lambda Z (outputs that are not steady states the plan may use), or past y_to
         return beyond
+
+    def before_block(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> np.ndarray | None:
+        """The last admissible output on the segment from y_from to y_to before its first blocked
+        stretch (one segment point short of it), or None when the way is clear or y_from itself is blocked."""
+        t = np.linspace(0.0, 1.0, SEGMENT_POINTS)
+        Y = y_from[:, None] + (y_to - y_from)[:, None] * t[None, :]
+        free, blocked = self._free(Y, par)
+        if not blocked.any() or not free[0]:
+            return None
+        first = int(np.argmax(blocked))
+        k = first - 2 if first >= 2 and free[first - 2] else first - 1
+        return Y[:, k].copy() if k >= 0 and free[k] else None
+
+    def crosses_block(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> bool:
+        """Whether a steady state on the segment from y_from to y_to is inside a region (y_to lies
+        beyond a blocked stretch, seen from y_from)."""
+        t = np.linspace(0.0, 1.0, SEGMENT_POINTS)
+        return bool(self._free(y_from[:, None] + (y_to - y_from)[:, None] * t[None, :], par)[1].any())
+
+    def _free(self, Y: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For outputs Y [p, SEGMENT_POINTS]: (steady state in lambda Z and outside every region, inside a region)."""
+        x_s, u_s, depth = self._segment(Y.T.ravel(), par)
+        z = np.vstack([x_s.reshape(SEGMENT_POINTS, -1).T, u_s.reshape(SEGMENT_POINTS, -1).T])
+        in_box = np.all((z >= self._lo[:, None]) & (z <= self._hi[:, None]), axis=0)
+        depth = depth.reshape(SEGMENT_POINTS, -1)
+        blocked = np.any(depth > 0, axis=1) if depth.size else np.zeros(SEGMENT_POINTS, bool)
+        return in_box & ~blocked, blocked
+
+    def penetration_guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
+                            regions: Sequence[Region]) -> list[Guess]:
+        """Guesses for a solved plan that predicts penetration (a local optimum of the penalty, e.g. x_a at
+        the centre of an ellipse, where the region function's gradient vanishes, or a squeeze between
+        two regions): y_a just in front of the first region on the way from the plant's output to the
+        target; the plan's y_a reached around each region in the way, on either side; then the
+        guesses beyond the blocking stretches (`guesses`)."""
+        if not self.available:
+            return []
+        out = []
+        y_now = self._output(x, np.zeros(self.model.m))[0].copy()
+        y_before = self.before_block(y_now, y_t, par)
+        if y_before is not None:
+            x_new, u_new = (v.copy() for v in self._steady(y_before))
+            out.append(Guess("before_block", y_before, self._path(x, [], x_new), np.tile(u_new, (self.horizon, 1))))
+        x_a, u_a = (v.copy() for v in self._steady(y_a))
+        for j, region in enumerate(regions):
+            for side, waypoint in zip(("left", "right"), self._detours(x, x_a, y_now, y_a, region)):
+                out.append(Guess(f"around_{side}_of_region{j}", y_a.copy(), self._path(x, [waypoint], x_a),
+                                 np.tile(u_a, (self.horizon, 1))))
+        return out + self.guesses(x, y_a, y_t, par, regions)
 
     def guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
                 regions: Sequence[Region]) -> list[Guess]:
@@ -210,30 +256,51 @@ def plan_cost(nlp: NlpBase, w: np.ndarray, par: np.ndarray) -> float:
 
 
 def lowest_cost(nlp: NlpBase, x: np.ndarray, par: np.ndarray, base: Solution, guesses: Sequence[Guess],
-                time_left: float, feasibility_tolerance: float) -> tuple[Solution, list[str], float]:
+                time_left: float, feasibility_tolerance: float, clear_depth: float = math.inf
+                ) -> tuple[Solution, list[str], float]:
     """Solve from each guess while time is left; the lowest-cost usable plan, base included.
 
     A candidate counts when it satisfies the hard constraints (solved, or violation below the
     tolerance) and predicts no more penetration than the base plan (+ DEPTH_ALLOWANCE): an escape
-    must not buy progress with penetration. Returns (best, one line per candidate tried, seconds).
+    must not buy progress with penetration. When the base plan itself predicts penetration beyond
+    `clear_depth`, a plan that stays within `clear_depth` wins over any that does not, whatever their
+    costs (the soft penalty may price a squeeze through two regions below a detour; the controller
+    must not). Returns (best, one line per candidate tried, seconds).
     """
+    def rank(cost: float, depth: float) -> tuple[bool, float]:
+        return (base.depth > clear_depth and depth > clear_depth, cost)
+
     best, report, spent = base, [], 0.0
-    layout = nlp.layout
+    slowest = 0.0  # a solve's own wall-time limit is fixed at build: start one only if it is likely to fit
     for guess in guesses:
-        if spent >= time_left:
+        if spent + slowest >= time_left:
             report.append(f"{guess.label}: not tried (sample budget spent)")
             continue
-        rest = None if layout.closed_form else np.concatenate([guess.states[-1], guess.inputs[-1]])
-        w0 = nlp.fill_slacks(layout.join_w(guess.inputs, guess.states, guess.y_a, rest, x0=x), par)
-        w, lam_x, lam_g, stats, seconds = nlp.solve(w0, par, np.zeros(layout.n_w), np.zeros(nlp.lbg.size))
+        candidate, line, seconds = solve_guess(nlp, x, par, guess, feasibility_tolerance)
         spent += seconds
-        status = str(stats.get("return_status", "unknown"))
-        solved = status in SOLVED
-        if not (np.all(np.isfinite(w)) and (solved or nlp.violation(w, par) <= feasibility_tolerance)):
-            report.append(f"{guess.label}: unusable ({status})")
+        slowest = max(slowest, seconds)
+        report.append(line)
+        if candidate is None:
             continue
-        cost, depth = plan_cost(nlp, w, par), nlp.max_depth(w, par)
-        report.append(f"{guess.label}: cost {cost:.6g}, depth {depth:.2g}")
-        if cost < best.cost and depth <= base.depth + DEPTH_ALLOWANCE:
-            best = Solution(w, lam_x, lam_g, nlp, solved, cost, depth, guess.label)
+        if rank(candidate.cost, candidate.depth) < rank(best.cost, best.depth) and \
+                candidate.depth <= base.depth + DEPTH_ALLOWANCE:
+            best = candidate
     return best, report, spent
+
+
+def solve_guess(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess, feasibility_tolerance: float
+                ) -> tuple[Solution | None, str, float]:
+    """Solve from one guess (zero multipliers): the plan if it satisfies the hard constraints (solved,
+    or violation below the tolerance) with its cost and predicted depth, else None; one report line;
+    the solver's wall time in s."""
+    layout = nlp.layout
+    rest = None if layout.closed_form else np.concatenate([guess.states[-1], guess.inputs[-1]])
+    w0 = nlp.fill_slacks(layout.join_w(guess.inputs, guess.states, guess.y_a, rest, x0=x), par)
+    w, lam_x, lam_g, stats, seconds = nlp.solve(w0, par, np.zeros(layout.n_w), np.zeros(nlp.lbg.size))
+    status = str(stats.get("return_status", "unknown"))
+    solved = status in SOLVED
+    if not (np.all(np.isfinite(w)) and (solved or nlp.violation(w, par) <= feasibility_tolerance)):
+        return None, f"{guess.label}: unusable ({status})", seconds
+    cost, depth = plan_cost(nlp, w, par), nlp.max_depth(w, par)
+    return (Solution(w, lam_x, lam_g, nlp, solved, cost, depth, guess.label),
+            f"{guess.label}: cost {cost:.6g}, depth {depth:.2g}", seconds)

@@ -11,6 +11,11 @@ parameters of k+1) - V_N(k), which equals the expression above term by term (a t
 needs nothing but the NLP's own cost terms whatever the regions and the model, and places moving
 regions at the stage times of k+1.
 
+In the passage mode (core/passage.py) the plans come from the NLP with the longer horizon: the
+same inequality holds for it, and each sample is checked with the NLP of its plan's horizon. A
+sample whose horizon differs from the previous one (entering or leaving the mode) is not checked:
+V_N of two horizons are different functions, and their difference bounds nothing.
+
 A violation is `decrease > decrease_bound + tolerance`, with
 
     tolerance = certificate_tolerance * solver tolerance * max(1, |V_N(k)|)
@@ -28,9 +33,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .controller import NmpcController, StepResult
+from .controller import NmpcController
 from .regions import Region
 from .status import StepStatus
+from .step_result import StepResult
 
 #: the per-sample vector of `~/certificate` (std_msgs/Float64MultiArray), in this order
 LAYOUT = ("value_function", "decrease", "decrease_bound", "margin", "tolerance", "checked", "violated",
@@ -168,9 +174,10 @@ class StabilityCertificate:
     def observe(self, result: StepResult, y_t: np.ndarray, time: float | None = None) -> CertificateSample:
         """Score the sample whose step gave `result` for target y_t [p] at `time` (s, as given to the step)."""
         source = COST_SOURCES.get(result.status, str(result.status))
-        n, N = self.controller.model.n, self.controller.nlp.layout.horizon
-        if not np.all(np.isfinite(result.y_a)) or result.states.shape[0] != N + 1 or result.inputs.shape[0] != N:
-            return self.skip(f"no plan of horizon {N} ({source})")
+        n, N = self.controller.model.n, result.inputs.shape[0]
+        if not np.all(np.isfinite(result.y_a)) or result.states.shape[0] != N + 1 or \
+                self.controller.nlp_of_horizon(N) is None:
+            return self.skip(f"no plan of horizon {self.controller.nlp.layout.horizon} ({source})")
         par = self.controller.parameters(result.states[0], y_t, time)
         value = self.plan_cost(result.states, result.inputs, result.y_a, result.x_a, result.u_a, par)
         # what must stay equal (Assumption P): the parameters but x(0) and the slots' time-dependent
@@ -184,6 +191,9 @@ class StabilityCertificate:
             return self._unchecked(value, source, "first sample")
         plan = previous.result
         mismatch = float(np.max(np.abs(result.states[0] - plan.states[1])))
+        if plan.inputs.shape[0] != N:
+            return self._unchecked(value, source, f"horizon switched ({plan.inputs.shape[0]} -> {N}, passage mode)",
+                                   mismatch)
         if not unchanged:
             return self._unchecked(value, source, "parameters changed (target, regions or weights)", mismatch)
         # the previous plan shifted (u(1..N-1), u_a; x(2..N), x_a), started at its own x(1) (the
@@ -213,8 +223,9 @@ class StabilityCertificate:
 
     def plan_cost(self, states: np.ndarray, inputs: np.ndarray, y_a: np.ndarray, x_a: np.ndarray,
                   u_a: np.ndarray, par: np.ndarray) -> float:
-        """V_o + V_a + sum l of a plan: states x(0..N) [N+1, n], inputs [N, m], steady triple, parameters."""
-        nlp = self.controller.nlp
+        """V_o + V_a + sum l of a plan: states x(0..N) [N+1, n], inputs [N, m], steady triple, parameters
+        (costed by the NLP of horizon N: the regular one or the passage mode's)."""
+        nlp = self.controller.nlp_of_horizon(inputs.shape[0]) or self.controller.nlp
         rest = None if nlp.layout.closed_form else np.concatenate([x_a, u_a])
         w = nlp.layout.join_w(inputs, states[1:], y_a, rest, x0=states[0])
         w = nlp.fill_slacks(w, par)

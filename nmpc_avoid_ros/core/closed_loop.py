@@ -21,12 +21,13 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from .certificate import StabilityCertificate
-from .controller import NmpcController, StepResult
+from .controller import NmpcController
 from .errors import ConfigError
 from .metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
 from .models import Model
 from .regions import Region
 from .settings import ControllerSettings
+from .step_result import StepResult
 
 #: the metrics' old home: kept importable from here for existing callers
 __all__ = ["PLANTS", "SETTLING_TOLERANCE", "ClosedLoop", "ClosedLoopRun", "ContinuousPlant", "DiscretePlant",

@@ -1,7 +1,10 @@
 """The NMPC controller: one bounded solve per sample, shifted warm start, escape and fallback.
 
 Escape (core/candidates.py): when y_a has stalled in front of a region that covers the steady
-states on the way to the target, more initial guesses are solved and the lowest-cost plan is kept.
+states on the way to the target, more initial guesses are solved and the lowest-cost plan is kept;
+when they find nothing better, the passage mode (core/passage.py) tries the same problem with the
+longer horizon `escape_horizon` and, once it plans past the region, solves that one until the
+state rests beyond it.
 Fallback (core/fallback.py, docs/design.md): when a solve fails or its budget runs out without a
 usable iterate, the input among the shifted plan, u_a of the last plan, the safe input and a short
 recovery solve that predicts the least violation over the next samples.
@@ -11,7 +14,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,10 +22,12 @@ from .errors import ConfigError, InputError
 from .fallback import VIOLATION_TOLERANCE, FallbackSelector
 from .models import Model, make_model
 from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase, TrackingNlp
+from .passage import Passage
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
 from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
 from .status import StepStatus
+from .step_result import Attempt, Plan, StepResult, validate_vector
 
 #: samples without a new escape attempt after one that found no better plan (the scene is static)
 ESCAPE_RETRY_SAMPLES = 10
@@ -42,107 +46,6 @@ def make_nlp(settings: ControllerSettings, model: Model | None = None) -> NlpBas
         raise ConfigError(f"solver {settings.solver!r} needs a closed-form steady state, which model "
                           f"{model.name!r} has not (its heading at rest is free): use solver 'ipopt'")
     return StagewiseNlp(settings, model)
-
-
-@dataclass
-class StepResult:
-    """Outcome of one sample.
-
-    Attributes:
-        u: command to apply now [m].
-        states: predicted states x(0..N) [N+1, n] (x(0) the measurement).
-        inputs: predicted inputs u(0..N-1) [N, m].
-        y_a, x_a, u_a: artificial steady output [p], state [n], input [m].
-        offset_cost, avoidance_cost, tracking_cost: V_o, V_a and the stage-cost sum of the plan.
-        status: what was applied (core/status.py): ok (solved), truncated (budget cut, feasible
-            iterate used), fallback_shift, fallback_steady, fallback_safe or fallback_recovery
-            (see core/fallback.py).
-        solver_status: the solver's own return status.
-        iterations: solver iterations; solve_time: wall time of the solve in s.
-        budget_exhausted: True when the iteration or time budget cut the solve.
-        escape: '' unless local-minimum escape guesses were tried: which plan was kept
-            ('shifted' or the guess's label) and one entry per guess tried.
-        fallback_reason: for a fallback, which candidate was applied and every candidate's
-            predicted violation; predicted_violation: the applied one's (region g / state units).
-        region_unavoidable: the solved plan predicts a violation beyond VIOLATION_TOLERANCE (a
-            region cannot be avoided from this state): the least-violating input was applied.
-    """
-
-    u: np.ndarray
-    states: np.ndarray
-    inputs: np.ndarray
-    y_a: np.ndarray
-    x_a: np.ndarray
-    u_a: np.ndarray
-    offset_cost: float
-    avoidance_cost: float
-    tracking_cost: float
-    status: StepStatus
-    solver_status: str
-    iterations: int
-    solve_time: float
-    budget_exhausted: bool = False
-    escape: str = ""
-    fallback_reason: str = ""
-    predicted_violation: float = math.nan
-    region_unavoidable: bool = False
-
-    @property
-    def is_fallback(self) -> bool:
-        return StepStatus(self.status).is_fallback
-
-
-@dataclass
-class _Attempt:
-    """The outcome of the sample's regular solve (see NmpcController._solve)."""
-
-    w: np.ndarray
-    lam_x: np.ndarray
-    lam_g: np.ndarray
-    nlp: NlpBase
-    solver_status: str
-    iterations: int
-    solve_time: float
-    solved: bool
-    usable: bool
-    budget_cut: bool
-    finite: bool
-
-
-@dataclass
-class _Plan:
-    """The last accepted solution and how many samples ago it was computed."""
-
-    inputs: np.ndarray
-    states: np.ndarray
-    y_a: np.ndarray
-    x_a: np.ndarray
-    u_a: np.ndarray
-    lam_x: np.ndarray
-    lam_g: np.ndarray
-    age: int = 0
-    costs: tuple[float, float, float] = field(default=(math.nan, math.nan, math.nan))
-
-
-def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int, max_abs: float = 1e12) -> np.ndarray:
-    """A finite float vector of exactly `size` entries, each within +-`max_abs`, else InputError naming the problem.
-
-    The magnitude bound refuses values that are finite but absurd: a target or state of 1e300 overflows
-    the NLP's squared costs, and the solver would then fail at every sample until the next good value.
-    """
-    if isinstance(values, (str, bytes)):  # numpy would read "1.5" as the number 1.5
-        raise InputError(f"{name}: data is not a sequence of numbers (got a {type(values).__name__})")
-    try:
-        arr = np.array(values, dtype=float).ravel()  # a copy, never a view of the caller's buffer
-    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
-        raise InputError(f"{name}: data is not a sequence of numbers") from None
-    if arr.size != size:
-        raise InputError(f"{name}: expected {size} values, got {arr.size}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name}: contains NaN or infinite values")
-    if np.any(np.abs(arr) > max_abs):
-        raise InputError(f"{name}: values must be within +-{max_abs:g}, got {arr.tolist()}")
-    return arr
 
 
 class NmpcController:
@@ -170,7 +73,7 @@ class NmpcController:
         self._moving = False
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
-        self._plan: _Plan | None = None
+        self._plan: Plan | None = None
         # the last iterate of a budget-cut solve that could not be applied: the next sample
         # continues the optimisation from it (shifted) instead of starting over
         self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -182,6 +85,12 @@ class NmpcController:
         # samples to wait before the next escape attempt (one that found nothing better)
         self._escape_wait = 0
         self._overrides = 0  # consecutive samples whose avoidable plan penetration was overridden
+        # the passage mode's NLP: the same problem with the longer horizon, built here once
+        long_nlp = None
+        if self.settings.escape_horizon:
+            long_nlp = make_nlp(self.settings.replace(horizon=self.settings.escape_horizon, escape_horizon=0),
+                                self.model)
+        self.passage = Passage(long_nlp, self.nlp, self.model, self.settings)
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
@@ -192,10 +101,22 @@ class NmpcController:
 
         Counted where each is built (`solver_builds` of NlpBase and FallbackSelector): the solver
         path's own, a fast path's copy with the cold-start budget, the fast paths' cold-start
-        reference (IPOPT) and the fallback's recovery solve. All are built in the constructor:
-        nothing at run time (a target, obstacles, mu, the weights) adds to it.
+        reference (IPOPT), the fallback's recovery solve and the passage mode's long NLP. All are
+        built in the constructor: nothing at run time (a target, obstacles, mu, the weights, entering
+        or leaving the passage mode) adds to it.
         """
-        return sum(part.solver_builds for part in (self.nlp, self.cold_nlp, self.fallback) if part is not None)
+        parts = (self.nlp, self.cold_nlp, self.fallback, self.passage)
+        return sum(part.solver_builds for part in parts if part is not None)
+
+    @property
+    def active_nlp(self) -> NlpBase:
+        """The NLP of the regular solve: the passage mode's long one while in it, else the solver path's."""
+        return self.passage.nlp if self.passage.active and self.passage.nlp is not None else self.nlp
+
+    def nlp_of_horizon(self, horizon: int) -> NlpBase | None:
+        """The regular or the passage NLP whose horizon is `horizon` (None if neither)."""
+        return next((nlp for nlp in (self.nlp, self.passage.nlp) if nlp is not None and nlp.layout.horizon == horizon),
+                    None)
 
     # -- run-time changes (never rebuild) ---------------------------------------------------
     @property
@@ -248,6 +169,7 @@ class NmpcController:
         self._reseed = False
         self._escape_wait = 0
         self._overrides = 0
+        self.passage.active = self.passage.due = False
 
     def parameters(self, x: np.ndarray, y_t: np.ndarray, time: float | None = None) -> np.ndarray:
         """The NLP parameter vector for state x [n] measured at `time` (s) and target y_t [p] with the
@@ -278,29 +200,48 @@ class NmpcController:
         s = self.settings
         par = self.parameters(x, y_t, time)
         previous_y_a = None if self._plan is None else self._plan.y_a.copy()
+        escape = "passage" if self.passage.active else ""
+        if self.passage.active and self.passage.can_hand_back(self._plan, self.nlp.layout.horizon):
+            # the long plan reaches its x_a within N samples (at rest beyond the region at the latest):
+            # its first N stages are a plan of the regular NLP, which takes over
+            self._plan, self._pending, escape = self.passage.hand_back(self._plan, self.nlp), None, "passage ended"
         attempt = self._solve(x, y_t, par)
         if not attempt.usable:
             self._pending = (attempt.w, attempt.lam_x, attempt.lam_g) if (
-                attempt.finite and attempt.budget_cut and attempt.nlp is self.nlp) else None
-            self._reseed = self.cold_nlp is not None and self._pending is None
-            return self._fallback(x, par, attempt.solver_status, attempt.iterations, attempt.solve_time,
-                                  attempt.budget_cut)
+                attempt.finite and attempt.budget_cut and attempt.nlp is self.active_nlp) else None
+            self._reseed = self.cold_nlp is not None and self._pending is None and not self.passage.active
+            result = self._fallback(x, par, attempt.solver_status, attempt.iterations, attempt.solve_time,
+                                    attempt.budget_cut)
+            result.escape, result.horizon = escape, attempt.nlp.layout.horizon
+            return result
         self._pending = None
         self._reseed = False
         best = Solution(attempt.w, attempt.lam_x, attempt.lam_g, attempt.nlp, attempt.solved, math.nan, math.nan)
-        solve_time, escape = attempt.solve_time, ""
-        if self._escape_due(best, previous_y_a, y_t, par):
-            best, tried, spent = self._escape(x, y_t, par, best, s.max_solve_time - solve_time)
+        solve_time = attempt.solve_time
+        # a plan that predicts penetration is a local optimum of the penalty (x_a at an ellipse's
+        # centre, where its gradient vanishes; a squeeze between two regions): look for one that is clear
+        # (in the passage mode the long plan goes on: no guesses; the mode ends as above)
+        penetrating = s.mu > 0 and self.escape.available and not self.passage.active and \
+            best.nlp.max_depth(best.w, par) > VIOLATION_TOLERANCE
+        if self.passage.active:
+            pass
+        elif penetrating or self._escape_due(best, previous_y_a, y_t, par):
+            best, tried, spent = self._escape(x, y_t, par, best, s.max_solve_time - solve_time, penetrating)
             solve_time += spent
             escape = f"{best.label}; tried: " + "; ".join(tried)
+        elif self.passage.due:
+            best, tried, spent = self._try_passage(x, y_t, par, best, previous_y_a, s.max_solve_time - solve_time)
+            solve_time += spent
+            escape = f"{best.label}; tried: " + "; ".join(tried) if tried else escape
         lam_x, lam_g = best.lam_x, best.lam_g
-        if best.nlp is not self.nlp:  # solved by the reference: the fast path's multipliers start from zero
-            lam_x, lam_g = np.zeros(self.nlp.layout.n_w), np.zeros(self.nlp.lbg.size)
+        active = self.active_nlp
+        if best.nlp is not active:  # solved by the reference: the fast path's multipliers start from zero
+            lam_x, lam_g = np.zeros(active.layout.n_w), np.zeros(active.lbg.size)
         plan = self._accept(x, best.w, par, lam_x, lam_g, best.nlp)
         status = StepStatus.OK if best.solved else StepStatus.TRUNCATED
         result = self._result(plan, x, 0, status, attempt.solver_status, attempt.iterations, solve_time,
                               attempt.budget_cut)
-        result.escape = escape
+        result.escape, result.horizon = escape, best.nlp.layout.horizon
         # a region the plan cannot avoid (e.g. one placed over the current state): the input that
         # predicts the least violation, and say so; the cheap depth check first (mu = 0: no avoidance)
         if s.mu > 0 and best.nlp.max_depth(best.w, par) > VIOLATION_TOLERANCE:
@@ -313,7 +254,7 @@ class NmpcController:
         An avoidable penetration is overridden for at most N samples in a row, so that a plan the
         solver keeps choosing is not held off for good (the plant would stand still).
         """
-        choice = self.fallback.check_plan(x, par, result.inputs)
+        choice = self.fallback.check_plan(x, par, result.inputs[:self.fallback.horizon])  # a long plan: its first N
         if choice is None or (not choice.unavoidable and self._overrides >= self.nlp.layout.horizon):
             self._overrides = 0
             return
@@ -327,14 +268,15 @@ class NmpcController:
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
 
-    def _solve(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray) -> _Attempt:
+    def _solve(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray) -> Attempt:
         """The sample's regular solve: the fast path from the shifted plan (cold: the cold-start solvers)."""
         s = self.settings
-        cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed)
+        cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed) and \
+            not self.passage.active
         # SQP paths try a cold start themselves first (cheap, and it works on small problems);
         # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
         if not cold:
-            nlps = [self.nlp]
+            nlps = [self.active_nlp]
         elif s.solver.startswith("sqp"):
             nlps = [self.nlp, self.cold_nlp]
         else:
@@ -357,7 +299,7 @@ class NmpcController:
             usable = finite and (solved or nlp.violation(w, par) <= s.feasibility_tolerance)
             if usable:
                 break
-        return _Attempt(w, lam_x, lam_g, nlp, solver_status, iterations, elapsed, solved, usable, budget_cut, finite)
+        return Attempt(w, lam_x, lam_g, nlp, solver_status, iterations, elapsed, solved, usable, budget_cut, finite)
 
     def _escape_due(self, base: Solution, previous_y_a: np.ndarray | None, y_t: np.ndarray, par: np.ndarray) -> bool:
         """Try escape guesses now? Stalled in front of a blocking region, and not tried in vain just before."""
@@ -367,19 +309,41 @@ class NmpcController:
         y_a = base.nlp.layout.split_w(base.w)[2]
         return self.escape.should_try(y_a, previous_y_a, y_t, par)
 
-    def _escape(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution, time_left: float
-                ) -> tuple[Solution, list[str], float]:
-        """The lowest-cost plan among the base and the escape guesses."""
+    def _escape(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution, time_left: float,
+                penetrating: bool = False) -> tuple[Solution, list[str], float]:
+        """The lowest-cost plan among the base and the escape guesses (for a `penetrating` base: a
+        clear plan first, see candidates.lowest_cost)."""
         # FATROP solves the guesses itself (measured on a 4-ellipse van der Pol scene: the same plans,
         # 12-14 ms for three guesses); the SQP paths stall from far guesses: the reference solves them
         nlp = self.nlp if self.settings.solver == "fatrop" else (self.cold_nlp or self.nlp)
         base.cost, base.depth = plan_cost(base.nlp, base.w, par), base.nlp.max_depth(base.w, par)
         y_a = base.nlp.layout.split_w(base.w)[2]
-        guesses = self.escape.guesses(x, y_a, y_t, par, self._regions)
-        best, tried, spent = lowest_cost(nlp, x, par, base, guesses, time_left, self.settings.feasibility_tolerance)
-        if best is base:  # nothing better here: do not try again every sample while at rest
+        if penetrating:
+            guesses = self.escape.penetration_guesses(x, y_a, y_t, par, self._regions)
+        else:
+            guesses = self.escape.guesses(x, y_a, y_t, par, self._regions)
+        best, tried, spent = lowest_cost(nlp, x, par, base, guesses, time_left, self.settings.feasibility_tolerance,
+                                         VIOLATION_TOLERANCE)
+        if best is base and not penetrating:  # nothing better here: do not try again every sample while at rest
             self._escape_wait = ESCAPE_RETRY_SAMPLES
+            self.passage.due = self.passage.available  # the long horizon next sample (its own budget)
         return best, tried, spent
+
+    def _try_passage(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution,
+                     previous_y_a: np.ndarray | None, time_left: float) -> tuple[Solution, list[str], float]:
+        """The sample after a vain stall escape: if y_a is still stalled in front of the region, the
+        passage NLP's plan that passes it (entering the mode), else the base."""
+        self.passage.due = False
+        y_a = base.nlp.layout.split_w(base.w)[2]
+        if not self.escape.should_try(y_a, previous_y_a, y_t, par):
+            return base, [], 0.0
+        entered, tried, spent = self.passage.attempt(x, y_t, par, base, self._regions, time_left,
+                                                     self.settings.feasibility_tolerance)
+        if entered is None:
+            self._escape_wait = ESCAPE_RETRY_SAMPLES
+            return base, tried, spent
+        self.passage.active = True
+        return entered, tried, spent
 
     def coast(self) -> StepResult | None:
         """A sample without a new measurement: the next input of the last plan (then u_a).
@@ -393,17 +357,17 @@ class NmpcController:
         if plan is None:
             return None
         plan.age += 1
-        N = self.nlp.layout.horizon
+        N = len(plan.inputs)
         predicted = plan.states[plan.age] if plan.age <= N else plan.x_a
         status = StepStatus.FALLBACK_SHIFT if plan.age < N else StepStatus.FALLBACK_STEADY
         return self._result(plan, predicted, plan.age, status, "no_new_state", 0, 0.0, False)
 
     def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray,
-                nlp: NlpBase) -> _Plan:
+                nlp: NlpBase) -> Plan:
         U, X, y_a, _ = nlp.layout.split_w(w)
         x_a, u_a = (v.copy() for v in nlp.steady(w))
         costs = tuple(float(c[0]) for c in nlp.terms(w, par))
-        self._plan = _Plan(U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
+        self._plan = Plan(U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
         return self._plan
 
     def _initial_guess(self, x: np.ndarray, y_t: np.ndarray, nlp: NlpBase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -417,10 +381,10 @@ class NmpcController:
         if self._pending is not None:
             w, lam_x, lam_g = self._pending
             U, X, y_a, rest = layout.split_w(w)
-            x_a, u_a = (v.copy() for v in self.nlp.steady(w))
+            x_a, u_a = (v.copy() for v in nlp.steady(w))
             U = np.vstack([U[1:], u_a])
             X = np.vstack([X[1:], x_a])
-            lam_x, lam_g = self.nlp.shift_duals(lam_x, lam_g, 1)
+            lam_x, lam_g = nlp.shift_duals(lam_x, lam_g, 1)
             return layout.join_w(U, X, y_a, rest, x0=x), lam_x, lam_g
         plan = self._plan
         if plan is None:
@@ -438,9 +402,9 @@ class NmpcController:
         X = np.vstack([plan.states[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
         w0 = layout.join_w(U, X, plan.y_a, rest, x0=x)
-        if nlp is not self.nlp:  # a re-seed by the reference: the plan's multipliers are the fast path's
+        if nlp is not self.active_nlp:  # a re-seed by the reference: the plan's multipliers are the fast path's
             return w0, np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
-        lam_x, lam_g = self.nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
+        lam_x, lam_g = nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
         return w0, lam_x, lam_g
 
     def _steady_of(self, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -468,11 +432,12 @@ class NmpcController:
                   budget_cut: bool) -> StepResult:
         """The candidate input predicting the least violation (core/fallback.py); the plan ages by one."""
         plan = self._plan
-        N = self.nlp.layout.horizon
         shifted = u_a = None
+        N = H = self.fallback.horizon  # the selector simulates N inputs: of a long plan, its first N
         if plan is not None:
             plan.age += 1
-            shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])
+            N = len(plan.inputs)
+            shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])[:H]
             u_a = plan.u_a
         choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N)
         solve_time += choice.solve_time
@@ -490,9 +455,9 @@ class NmpcController:
         result.predicted_violation = choice.violation
         return result
 
-    def _result(self, plan: _Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
+    def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
                 solve_time: float, budget_cut: bool) -> StepResult:
-        N = self.nlp.layout.horizon
+        N = len(plan.inputs)  # the regular horizon, or the passage mode's
         inputs = np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))])
         states = np.vstack([x, plan.states[age + 1:], np.tile(plan.x_a, (min(age, N), 1))])
         return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),

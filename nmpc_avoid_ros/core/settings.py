@@ -55,6 +55,9 @@ class ControllerSettings:
                                  low=0.0, low_open=True)
     horizon: int = setting(5, "prediction horizon N (samples)", low=1, high=2000)  # an upper limit keeps
     # a typo (horizon: 1e30) from hanging the NLP build; likewise for the other integer capacities
+    escape_horizon: int = setting(0, "horizon of the passage mode's second NLP (samples), tried when y_a stalls in "
+                                     "front of a region the N-sample plan cannot pass (core/passage.py); 0: off, "
+                                     "else greater than horizon", low=0, high=2000)
     discretization: str = setting("euler", "prediction model discretisation: euler (as in the paper) or rk4",
                                   choices=DISCRETISATIONS)
     state_min: tuple[float, ...] = setting((-6.0, -2.0), "lower bounds of the state box of Z (n values)",
@@ -137,6 +140,9 @@ class ControllerSettings:
             if any(a == b for a, b in zip(lo, hi)):
                 # lambda * Z needs Z to contain the origin (paper section II) and be a real box
                 raise ConfigError(f"{lo_name}/{hi_name}: need min <= 0 <= max and min < max, got {lo}, {hi}")
+        if self.escape_horizon and self.escape_horizon <= self.horizon:
+            raise ConfigError(f"escape_horizon must be 0 (off) or greater than horizon = {self.horizon} "
+                              f"(the passage mode plans further than the regular NLP), got {self.escape_horizon}")
         for name in ("plane", "output_plane"):
             plane = getattr(self, name)
             if plane[0] == plane[1]:

@@ -26,9 +26,9 @@ the state this sample used), `max_state_gap_ms` (longest interval between two go
 `stale_for_s` (how long the current stale episode lasts) and `last_stale_s` (length of the last
 one that ended); with a solve also `status`, `solver_status`, `iterations`, `solve_time_ms`,
 `step_latency_ms`, `budget_exhausted`, the costs, `y_a`, `state` and `state_time` (node-clock s
-when that state arrived: moving obstacles are predicted from it). Obstacles: `moving_regions`,
-`obstacle_resets` (velocity estimates reset) and `last_obstacle_issue` (the latest refusal or
-reset of a marker, with its reason).
+when that state arrived, in lockstep on sim time its sample time: moving obstacles are predicted
+from it). Obstacles: `moving_regions`, `obstacle_resets` (velocity estimates reset) and
+`last_obstacle_issue` (the latest refusal or reset of a marker, with its reason).
 
 Stability certificate (core/certificate.py, docs/certificate.md): every sample checks the decrease
 of the value function; diagnostics carry `value_function`, `decrease`, `decrease_bound`,
@@ -56,9 +56,10 @@ from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from ..core.certificate import CertificateSample, StabilityCertificate
-from ..core.controller import NmpcController, StepResult
+from ..core.controller import NmpcController
 from ..core.errors import ConfigError, InputError, NmpcError
 from ..core.settings import NODE_SETTINGS, SETTINGS, NodeSettings
+from ..core.step_result import StepResult
 from ..ros.conversions import array_to_vector
 from ..ros.markers import RegionStore
 from ..ros.parameters import (
@@ -181,6 +182,7 @@ class ControllerNode(LifecycleNode):
         """Forget the measured state: after (re)activation the loop waits for a fresh one."""
         self.state: np.ndarray | None = None
         self.state_time: float | None = None  # node-clock seconds of the last good state
+        self.state_time_ns: int | None = None  # the same in ns
         self.state_solved = True  # lockstep: has the latest state been answered?
         self.fresh_state = False  # a good state arrived since the last solve
         self.stale_since: float | None = None  # node-clock time the current stale episode began
@@ -251,6 +253,17 @@ class ControllerNode(LifecycleNode):
     def now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def state_clock(self) -> float:
+        """Node-clock time (s) of a state arriving now. Lockstep on sim time: its sample time. The
+        plant publishes the state's /clock tick just before it, on another topic, so the tick may be
+        handled after the state; the plant waits for our command, so it is never further ahead: the
+        time is max(clock, last state's + sample_time), in ns as the plant counts (both orders agree)."""
+        now_ns = self.get_clock().now().nanoseconds
+        if self.lockstep and self.get_clock().ros_time_is_active and self.state_time_ns is not None:
+            now_ns = max(now_ns, self.state_time_ns + round(self.controller.settings.sample_time * 1e9))
+        self.state_time_ns = now_ns
+        return now_ns * 1e-9
+
     def reject(self, what: str, reason: str) -> None:
         self.counts["rejected_inputs"] += 1
         self.last_rejected = f"{what}: {reason}"
@@ -262,7 +275,7 @@ class ControllerNode(LifecycleNode):
         except InputError as exc:
             self.reject(self.io.state_topic, str(exc))
             return
-        now = self.now()
+        now = self.state_clock()
         if self.state_time is not None:
             self.max_state_gap = max(self.max_state_gap, now - self.state_time)
         self.state_time = now
@@ -353,7 +366,7 @@ class ControllerNode(LifecycleNode):
                     self.options.state_timeout else DiagnosticStatus.WARN
                 self.publish_diagnostics(level, f"idle: waiting for {waiting}", None, 0.0)
             return
-        self.state_age = now - self.state_time
+        self.state_age = max(0.0, now - self.state_time)  # lockstep: the state may be ahead of the /clock tick
         if not self.lockstep and self.state_age > self.options.state_timeout:
             if self.stale_since is None:
                 self.stale_since = self.state_time + self.options.state_timeout  # when it became stale
@@ -463,6 +476,7 @@ class ControllerNode(LifecycleNode):
                 "state": str(result.states[0].tolist()), "state_time": repr(self.state_time),
                 "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
                 "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
+                "horizon": str(result.horizon),
             })
         cert = self.last_certificate
         if cert is not None:

@@ -11,8 +11,8 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.certificate import LAYOUT, CertificateSample
-from ..core.controller import StepResult
 from ..core.settings import ControllerSettings
+from ..core.step_result import StepResult
 from ..ros.parameters import STREAM_QOS
 from ..ros.visualization import prediction_path, regions_markers, stats_array, steady_state_marker, target_marker
 from .controller_io import ArrayInterface, RobotInterface
@@ -42,7 +42,7 @@ class ControllerViews:
         predicted = []
         if settings.predict_obstacles:
             predicted = [[region.at(state_time + k * settings.sample_time) for region in regions if region.moving]
-                         for k in range(1, settings.horizon + 1)]
+                         for k in range(1, result.states.shape[0])]  # the plan's stages (passage mode: more)
         self.regions.publish(regions_markers(now, stamp, frames, predicted))
         if np.all(np.isfinite(result.x_a)):
             self.steady_state.publish(steady_state_marker(result.x_a, plane, stamp, frames.state))

@@ -8,6 +8,10 @@ alive at scene time s, where they are at s, as one MarkerArray that replaces the
 (DELETEALL, then one marker per obstacle, ns `<prefix>/<obstacle id>`), stamped with the node
 clock. With `explicit_velocity` each marker carries its velocity in `text` (`velocity=vx,vy`);
 without, the controller estimates it from the successive stamped poses, as from any tracker.
+The set at scene time 0 also goes out at once on start (latched), so a controller has it before
+the first state. On simulated time (`use_sim_time`, a lockstep plant's /clock: `demo --scene
+--lockstep`) the scene runs on that clock: the timer fires when the clock passes a period (once
+per lockstep sample for rates above 1/sample_time), and stamps and poses are those of the tick.
 """
 
 from __future__ import annotations
@@ -57,6 +61,7 @@ class ObstaclesNode(Node):
         if self.started is None:
             self.create_subscription(Float64MultiArray, "state", self.on_state, STREAM_QOS)
         self.timer = self.create_timer(1.0 / float(values["rate"]), self.publish)
+        self.publish()  # on sim time the timer waits for the first /clock tick: the set is out before x0
         self.get_logger().info(f"obstacles ready: {len(self.scene.obstacles)} obstacle(s) of {self.scene.path} at "
                                f"{values['rate']:g} Hz, scene time starts on {values['start_on']}, "
                                f"velocity {'explicit' if self.explicit else 'left to estimation'}")

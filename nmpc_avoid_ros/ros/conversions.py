@@ -13,8 +13,8 @@ import numpy as np
 from builtin_interfaces.msg import Duration, Time
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from ..core.controller import validate_vector
 from ..core.errors import InputError
+from ..core.step_result import validate_vector
 
 _NS_PER_S = 1_000_000_000
 

@@ -1,7 +1,9 @@
 """`demo`: the paper's example through ROS 2 topics, with and without avoidance -> DIR.
 
     python -m nmpc_avoid_ros demo --out out [--lockstep] [--config FILE] [--steps 50]
-    python -m nmpc_avoid_ros demo --scene config/scenes/crossing_walker.yaml --out out/walker  (tools/scene_demo.py)
+    python -m nmpc_avoid_ros demo --scene config/scenes/crossing_walker.yaml --out out/walker \
+        [--lockstep [--max-solve-time 30]]   (tools/scene_demo.py; --lockstep: every node on the plant's
+        simulated time, so the encounter does not depend on the controller's speed)
 
 Starts plant and controller as separate processes for each run, publishes the target and the
 (empty) obstacle set on their topics, collects what the nodes publish, and writes
@@ -175,13 +177,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out"), help="output directory")
     ap.add_argument("--config", type=Path, help="ROS 2 params file (default: the shipped van_der_pol.yaml)")
     ap.add_argument("--steps", type=int, default=50)
-    ap.add_argument("--lockstep", action="store_true", help="plant advances per command (fast, deterministic)")
+    ap.add_argument("--lockstep", action="store_true", help="plant advances per command (fast, deterministic); "
+                    "with --scene every node on the plant's simulated time")
     ap.add_argument("--timeout", type=float, default=180.0, help="seconds allowed per run")
-    ap.add_argument("--scene", type=Path, help="run a scene file instead (real time; see tools/scene_demo.py)")
+    ap.add_argument("--scene", type=Path, help="run a scene file instead (real time, or --lockstep; see "
+                    "tools/scene_demo.py)")
     ap.add_argument("--predict-obstacles", choices=("on", "off"), help="with --scene: predict moving obstacles")
     ap.add_argument("--obstacle-rate", type=float, default=10.0, help="with --scene: markers per second")
     ap.add_argument("--mu", type=float, help="with --scene: avoidance weight override")
     ap.add_argument("--solver", help="with --scene: solver path override")
+    ap.add_argument("--max-solve-time", type=float, help="with --scene: the solver's wall-time budget override, s "
+                    "(with --lockstep a large one leaves nothing that depends on the machine's speed)")
     ap.add_argument("--estimate-velocity", action="store_true",
                     help="with --scene: markers without velocity, the controller estimates it from their stamps")
     args = ap.parse_args(argv)
@@ -200,14 +206,14 @@ def main(argv: list[str] | None = None) -> int:
 def _scene_main(args: argparse.Namespace) -> int:
     from .scene_demo import run_scene_demo
 
-    if args.config or args.lockstep:
-        print("demo: error: --scene names its config and runs in real time: drop --config and --lockstep",
-              file=sys.stderr)
+    if args.config:
+        print("demo: error: --scene names its config: drop --config", file=sys.stderr)
         return 2
     predict = None if args.predict_obstacles is None else args.predict_obstacles == "on"
+    overrides = {"mu": args.mu, "solver": args.solver, "max_solve_time": args.max_solve_time}
     try:
         report = run_scene_demo(args.scene, args.out, predict, max(args.timeout, 60.0), args.obstacle_rate,
-                                not args.estimate_velocity, {"mu": args.mu, "solver": args.solver})
+                                not args.estimate_velocity, overrides, args.lockstep)
     except NmpcError as exc:
         print(f"demo: error: {exc}", file=sys.stderr)
         return 1

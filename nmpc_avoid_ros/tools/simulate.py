@@ -135,6 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--mu", type=float, help="avoidance weight (0 disables avoidance)")
     ap.add_argument("--kappa", type=float, help="offset weight")
     ap.add_argument("--horizon", type=int, help="prediction horizon N")
+    ap.add_argument("--escape-horizon", type=int, help="horizon of the passage mode's NLP (0: off; default: the "
+                                                        "config's; it must exceed N)")
     ap.add_argument("--plant", choices=PLANTS, help="euler: the prediction model; continuous: ZOH + DOP853")
     ap.add_argument("--solver", help="solver path by name ('list' prints them and exits)")
     ap.add_argument("--codegen", action=argparse.BooleanOptionalAction, default=None,
@@ -157,8 +159,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     predict = None if args.predict_obstacles is None else args.predict_obstacles == "on"
     overrides = dict(x0=args.x0, target=args.target, steps=args.steps, plant=args.plant, mu=args.mu,
-                     kappa=args.kappa, horizon=args.horizon, solver=args.solver, codegen=args.codegen,
-                     predict_obstacles=predict)
+                     kappa=args.kappa, horizon=args.horizon, escape_horizon=args.escape_horizon, solver=args.solver,
+                     codegen=args.codegen, predict_obstacles=predict)
     try:
         if args.scene:
             if args.config or args.target:

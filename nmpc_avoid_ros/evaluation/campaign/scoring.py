@@ -222,7 +222,8 @@ def robustness_section(s: Scored) -> dict[str, Any]:
 
     penetration_after_first_step: max g over x(2..K) (0 if never inside); fallback_penetration: max
     g over the `horizon` states after each fallback sample (0 without fallbacks); escapes_tried:
-    samples that solved escape guesses; escapes_taken: samples whose plan came from one.
+    samples that solved escape guesses; escapes_taken: samples whose plan came from one; passages:
+    entries into the passage mode (core/passage.py); passage_samples: samples spent in it.
     """
     run = s.run
     keep = keep_in_values(s.settings, s.model, run.x, run.u)
@@ -237,8 +238,10 @@ def robustness_section(s: Scored) -> dict[str, Any]:
         # the first sample's least-violating input still predicts a violation: a region cannot be
         # avoided from x0 although x0 is in X_N (whose constraints are the hard ones alone)
         "unavoidable_at_start": bool(run.predicted_violations and run.predicted_violations[0] > 1e-3),
-        "escapes_tried": sum(bool(e) for e in run.escapes),
-        "escapes_taken": sum(bool(e) and not e.startswith("shifted") for e in run.escapes),
+        "escapes_tried": sum("tried:" in e for e in run.escapes),
+        "escapes_taken": sum("tried:" in e and not e.startswith("shifted") for e in run.escapes),
+        "passages": sum(e.startswith("passage:") for e in run.escapes),
+        "passage_samples": sum(e == "passage" or e.startswith("passage:") for e in run.escapes),
     }
 
 

@@ -98,6 +98,9 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "escapes_tried": sum(r["escapes_tried"] for r in records),
         "escapes_taken": sum(r["escapes_taken"] for r in records),
         "runs_with_escape_taken": sum(r["escapes_taken"] > 0 for r in records),
+        "passages": sum(r.get("passages", 0) for r in records),
+        "passage_samples": sum(r.get("passage_samples", 0) for r in records),
+        "runs_with_passage": sum(r.get("passages", 0) > 0 for r in records),
         "solve_ms": time_stats(np.concatenate([r["trace"]["solve_ms"] for r in records]))
         if all("trace" in r for r in records) else None,
         "runs_with_fallback": sum(r["fallbacks"] > 0 for r in records),
@@ -175,7 +178,8 @@ DEFINITIONS = {
                             "(X_N has the hard constraints only); penetration_after_first_step_avoidable_start "
                             "and fallback_penetration_avoidable_start leave these runs (and x0 outside X_N) out",
     "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/candidates.py); "
-               "escapes_taken: samples whose plan came from one",
+               "escapes_taken: samples whose plan came from one; passages: entries into the passage mode "
+               "(core/passage.py, the longer escape_horizon), passage_samples: samples spent in it",
     "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
     "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
                           "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",
@@ -219,7 +223,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"{s['runs_unavoidable_at_start']} runs), after fallbacks {_fmt(s['fallback_penetration'])} "
             f"(avoidable start {_fmt(s['fallback_penetration_avoidable_start'])})",
             f"  fallbacks by candidate {s['fallback_kinds']}; escapes tried {s['escapes_tried']}, taken "
-            f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs",
+            f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs; passages {s.get('passages', 0)} in "
+            f"{s.get('runs_with_passage', 0)} runs ({s.get('passage_samples', 0)} samples)",
         ]
         if s.get("certificate_checked"):
             lines.append(f"  certificate violations {s['certificate_violations']} of {s['certificate_checked']} "

@@ -1,0 +1,122 @@
+"""What one controller sample returns (StepResult), the plan it keeps, and input validation.
+
+Split from core/controller.py so that the controller module holds the sample's logic only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .nlp import NlpBase
+from .status import StepStatus
+
+
+@dataclass
+class StepResult:
+    """Outcome of one sample.
+
+    Attributes:
+        u: command to apply now [m].
+        states: predicted states x(0..N) [N+1, n] (x(0) the measurement).
+        inputs: predicted inputs u(0..N-1) [N, m].
+        y_a, x_a, u_a: artificial steady output [p], state [n], input [m].
+        offset_cost, avoidance_cost, tracking_cost: V_o, V_a and the stage-cost sum of the plan.
+        status: what was applied (core/status.py): ok (solved), truncated (budget cut, feasible
+            iterate used), fallback_shift, fallback_steady, fallback_safe or fallback_recovery
+            (see core/fallback.py).
+        solver_status: the solver's own return status.
+        iterations: solver iterations; solve_time: wall time of the solve in s.
+        budget_exhausted: True when the iteration or time budget cut the solve.
+        escape: '' unless local-minimum escape guesses were tried: which plan was kept
+            ('shifted' or the guess's label; 'passage:<label>' entering the passage mode,
+            core/passage.py) and one entry per guess tried; 'passage' for a sample in the passage
+            mode, 'passage ended' for the one that hands back to the regular horizon.
+        horizon: stages of the NLP solved (or attempted) at this sample: the regular N, or
+            escape_horizon in the passage mode (0: no solve, e.g. `coast`).
+        fallback_reason: for a fallback, which candidate was applied and every candidate's
+            predicted violation; predicted_violation: the applied one's (region g / state units).
+        region_unavoidable: the solved plan predicts a violation beyond VIOLATION_TOLERANCE (a
+            region cannot be avoided from this state): the least-violating input was applied.
+    """
+
+    u: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    y_a: np.ndarray
+    x_a: np.ndarray
+    u_a: np.ndarray
+    offset_cost: float
+    avoidance_cost: float
+    tracking_cost: float
+    status: StepStatus
+    solver_status: str
+    iterations: int
+    solve_time: float
+    budget_exhausted: bool = False
+    escape: str = ""
+    fallback_reason: str = ""
+    predicted_violation: float = math.nan
+    region_unavoidable: bool = False
+    horizon: int = 0
+
+    @property
+    def is_fallback(self) -> bool:
+        return StepStatus(self.status).is_fallback
+
+
+@dataclass
+class Attempt:
+    """The outcome of the sample's regular solve (see NmpcController._solve)."""
+
+    w: np.ndarray
+    lam_x: np.ndarray
+    lam_g: np.ndarray
+    nlp: NlpBase
+    solver_status: str
+    iterations: int
+    solve_time: float
+    solved: bool
+    usable: bool
+    budget_cut: bool
+    finite: bool
+
+
+@dataclass
+class Plan:
+    """The last accepted solution and how many samples ago it was computed."""
+
+    inputs: np.ndarray
+    states: np.ndarray
+    y_a: np.ndarray
+    x_a: np.ndarray
+    u_a: np.ndarray
+    lam_x: np.ndarray
+    lam_g: np.ndarray
+    age: int = 0
+    costs: tuple[float, float, float] = field(default=(math.nan, math.nan, math.nan))
+
+
+def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int, max_abs: float = 1e12) -> np.ndarray:
+    """A finite float vector of exactly `size` entries, each within +-`max_abs`, else InputError naming the problem.
+
+    The magnitude bound refuses values that are finite but absurd: a target or state of 1e300 overflows
+    the NLP's squared costs, and the solver would then fail at every sample until the next good value.
+    """
+    if isinstance(values, (str, bytes)):  # numpy would read "1.5" as the number 1.5
+        raise InputError(f"{name}: data is not a sequence of numbers (got a {type(values).__name__})")
+    try:
+        arr = np.array(values, dtype=float).ravel()  # a copy, never a view of the caller's buffer
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int beyond float range
+        raise InputError(f"{name}: data is not a sequence of numbers") from None
+    if arr.size != size:
+        raise InputError(f"{name}: expected {size} values, got {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name}: contains NaN or infinite values")
+    if np.any(np.abs(arr) > max_abs):
+        raise InputError(f"{name}: values must be within +-{max_abs:g}, got {arr.tolist()}")
+    return arr
