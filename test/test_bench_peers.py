@@ -107,7 +107,7 @@ def test_mobile_robot_obstacle_change_is_a_parameter_change(peer):
     assert (stepper.opti if isinstance(stepper, OptiIpoptPaper) else stepper.mpc) is problem
     assert run.regions[7] == tuple(first) and run.regions[8] == tuple(second)
     depth = max(r.depth(run.x[k + 1, :2]) for k in range(24) for r in run.regions[k])
-    assert depth < 0.01  # mu = 1e5: a penalty, so a tiny penetration is allowed
+    assert depth < 0.01  # mu: a penalty, so a tiny penetration is allowed
     assert max(second[0].depth(p) for p in run.x[9:, :2]) > -0.05  # the new obstacle was in the way
     assert fallbacks(run) == 0
     # it drives on towards the goal around both obstacles

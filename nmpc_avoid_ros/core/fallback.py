@@ -158,7 +158,7 @@ class FallbackSelector:
         the plan (kind 'plan'), the safe input and the recovery solve, when every one of them predicts
         a violation (a region that cannot be avoided from x: `unavoidable`), or when the plan predicts
         more than PLAN_OVERRIDE and another candidate avoids the regions. A plan's small penetration
-        that is avoidable is the soft penalty's trade-off (the robot's mu = 1e5 plans predict a few
+        that is avoidable is the soft penalty's trade-off (the robot's plans with mu = 1e5 predicted a few
         1e-3): overriding it would hold the plant still.
         """
         plan_violation = self.predict(x, plan_inputs, par)[1]
