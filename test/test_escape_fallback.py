@@ -239,6 +239,37 @@ def test_a_plan_squeezing_between_two_ellipses_is_replaced_by_a_clear_one_that_m
     assert end < start - 1.0, "held still by overrides (today: 39 of the first 40 samples)"
 
 
+#: campaign robot-0069 (seed 0): the goal lies beyond the box's edge y2 = 9.9, its best admissible
+#: point on the edge; the robot drove along the edge and y_a stalled 7.6 m short in front of an
+#: ellipse across it. The segment from y_a to the goal left lambda Z at once, so no escape was tried.
+ROBOT_0069 = {"x0": [6.488053293800503, 8.794659367935523, -0.5359977622879994, -0.8268521755119755],
+              "target": [-7.532243858911283, 10.159135686376622],
+              "ellipses": [((4.567690651712065, -6.6083777905296985), (1.0268033834868477, 0.6980784488274356),
+                            0.8310443586486108),
+                           ((-1.4878951767493411, 9.35884167054966), (1.824560609540367, 1.571886258849624),
+                            1.4114670603712256)]}
+
+
+def test_an_unreachable_goal_beyond_the_box_edge_is_reached_past_an_ellipse_across_the_edge():
+    from rosgraph import ROOT
+
+    from nmpc_avoid_ros.core.settings import load_params_file
+
+    params = load_params_file(ROOT / "config" / "mobile_robot.yaml").section("controller")
+    controller = NmpcController(ControllerSettings.from_params(params).replace(max_solve_time=5.0))
+    regions = [Ellipse(c, a, yaw, "output") for c, a, yaw in ROBOT_0069["ellipses"]]
+    aim = controller.escape.aim(np.array(ROBOT_0069["target"]))
+    lam = controller.settings.steady_state_scale
+    # the goal clipped into lambda Z
+    assert aim == pytest.approx([ROBOT_0069["target"][0], lam * controller.settings.state_max[1]])
+    results = []
+    run = run_closed_loop(controller, ROBOT_0069["x0"], ROBOT_0069["target"], 140,
+                          regions=lambda k: regions if k == 0 else None, on_step=lambda k, res: results.append(res))
+    assert np.linalg.norm(run.x[-1, :2] - aim) < 0.05, f"today: rests at {run.x[-1, :2]}, 7.6 m short"
+    assert any(r.escape and r.escape.split(";")[0] != "shifted" for r in results)
+    assert max(e.depth(x[:2]) for e in regions for x in run.x[1:]) <= 1e-3
+
+
 def test_a_clear_plan_beats_a_cheaper_penetrating_base_only_when_asked_to():
     controller = NmpcController(ControllerSettings())
     controller.set_regions([BLOCKER])

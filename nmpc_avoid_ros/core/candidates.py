@@ -36,6 +36,9 @@ SEGMENT_REACH = 2.0
 STALL_TOLERANCE = 1e-3
 #: a detour passes this far outside a region's bounding circle, relative to its radius
 DETOUR_MARGIN = 0.25
+#: a steady state this far outside lambda Z still counts as in it (a solved y_a on the box's edge
+#: is feasible to the solver's tolerance, not exactly)
+BOX_TOLERANCE = 1e-6
 
 
 @dataclass
@@ -90,7 +93,24 @@ class EscapeGuesses:
             return False
         if np.max(np.abs(y_a - y_a_before)) >= STALL_TOLERANCE:
             return False
-        return bool(self.beyond_blocks(y_a, y_t, par))
+        return bool(self.beyond_blocks(y_a, self.aim(y_t), par))
+
+    def aim(self, y_t: np.ndarray) -> np.ndarray:
+        """The output [p] the segments run to: y_t, or for a y_t whose steady state is outside lambda Z
+        the output of that steady state clipped into the box (twice, for an output that depends on
+        the input). The segment to an unreachable y_t leaves lambda Z at once when y_a rests on the
+        box's edge, so a region along the edge was never seen (campaign robot-0069: goal beyond
+        y2 = 9.9, an ellipse across the edge, y_a stalled 7.6 m short)."""
+        y = np.asarray(y_t, float).ravel()
+        n = self.model.n
+        for _ in range(2):
+            x_s, u_s = self._steady(y)
+            z = np.concatenate([np.ravel(x_s), np.ravel(u_s)])
+            if np.all((z >= self._lo - BOX_TOLERANCE) & (z <= self._hi + BOX_TOLERANCE)):
+                break
+            z = np.clip(z, self._lo, self._hi)
+            y = np.ravel(self._output(z[:n], z[n:])[0]).copy()
+        return y
 
     def beyond_blocks(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> list[np.ndarray]:
         """Outputs just beyond each stretch of the segment from y_from towards y_to (SEGMENT_REACH times
@@ -140,7 +160,7 @@ class EscapeGuesses:
         """For outputs Y [p, SEGMENT_POINTS]: (steady state in lambda Z and outside every region, inside a region)."""
         x_s, u_s, depth = self._segment(Y.T.ravel(), par)
         z = np.vstack([x_s.reshape(SEGMENT_POINTS, -1).T, u_s.reshape(SEGMENT_POINTS, -1).T])
-        in_box = np.all((z >= self._lo[:, None]) & (z <= self._hi[:, None]), axis=0)
+        in_box = np.all((z >= self._lo[:, None] - BOX_TOLERANCE) & (z <= self._hi[:, None] + BOX_TOLERANCE), axis=0)
         depth = depth.reshape(SEGMENT_POINTS, -1)
         blocked = np.any(depth > 0, axis=1) if depth.size else np.zeros(SEGMENT_POINTS, bool)
         return in_box & ~blocked, blocked
@@ -156,7 +176,7 @@ class EscapeGuesses:
             return []
         out = []
         y_now = self._output(x, np.zeros(self.model.m))[0].copy()
-        y_before = self.before_block(y_now, y_t, par)
+        y_before = self.before_block(y_now, self.aim(y_t), par)
         if y_before is not None:
             x_new, u_new = (v.copy() for v in self._steady(y_before))
             out.append(Guess("before_block", y_before, self._path(x, [], x_new), np.tile(u_new, (self.horizon, 1))))
@@ -171,7 +191,7 @@ class EscapeGuesses:
                 regions: Sequence[Region]) -> list[Guess]:
         """Candidate guesses: y_a beyond each blocking stretch, straight and around each region on either side."""
         out = []
-        for i, y_new in enumerate(self.beyond_blocks(y_a, y_t, par)):
+        for i, y_new in enumerate(self.beyond_blocks(y_a, self.aim(y_t), par)):
             x_new, u_new = (v.copy() for v in self._steady(y_new))
             out.append(Guess(f"beyond{i}", y_new, self._path(x, [], x_new), np.tile(u_new, (self.horizon, 1))))
             for j, region in enumerate(regions):
