@@ -222,7 +222,7 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"{_fmt(s['penetration_after_first_step_avoidable_start'])}, unavoidable in "
             f"{s['runs_unavoidable_at_start']} runs), after fallbacks {_fmt(s['fallback_penetration'])} "
             f"(avoidable start {_fmt(s['fallback_penetration_avoidable_start'])})",
-            f"  fallbacks by candidate {s['fallback_kinds']}; escapes tried {s['escapes_tried']}, taken "
+            f"  fallbacks by candidate {_kinds(s['fallback_kinds'])}; escapes tried {s['escapes_tried']}, taken "
             f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs; passages {s.get('passages', 0)} in "
             f"{s.get('runs_with_passage', 0)} runs ({s.get('passage_samples', 0)} samples)",
         ]
@@ -237,6 +237,11 @@ def format_summary(summary: dict[str, Any]) -> str:
             t = s["solve_ms"]
             lines.append(f"  solve ms median {t['median']:.3g}, p99 {t['p99']:.3g}, max {t['max']:.3g}")
     return "\n".join(lines)
+
+
+def _kinds(counts: dict) -> str:
+    """'shift 0, steady 0, safe 2, recovery 90' from fallback counts keyed by StepStatus or its value."""
+    return ", ".join(f"{str(getattr(k, 'value', k)).removeprefix('fallback_')} {n}" for k, n in counts.items())
 
 
 def _fmt(v: float | None) -> str:
