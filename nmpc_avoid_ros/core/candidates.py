@@ -41,6 +41,12 @@ DETOUR_MARGIN = 0.25
 BOX_TOLERANCE = 1e-6
 
 
+def _segment(y_from: np.ndarray, y_to: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """SEGMENT_POINTS outputs from y_from towards y_to, `reach` times as far: (t [K], Y [p, K])."""
+    t = np.linspace(0.0, reach, SEGMENT_POINTS)
+    return t, y_from[:, None] + (y_to - y_from)[:, None] * t[None, :]
+
+
 @dataclass
 class Guess:
     """One initial guess: y_a [p], x(1..N) [N, n], u(0..N-1) [N, m], and how it was made."""
@@ -106,7 +112,7 @@ class EscapeGuesses:
         for _ in range(2):
             x_s, u_s = self._steady(y)
             z = np.concatenate([np.ravel(x_s), np.ravel(u_s)])
-            if np.all((z >= self._lo - BOX_TOLERANCE) & (z <= self._hi + BOX_TOLERANCE)):
+            if self._in_box(z[:, None])[0]:
                 break
             z = np.clip(z, self._lo, self._hi)
             y = np.ravel(self._output(z[:n], z[n:])[0]).copy()
@@ -118,8 +124,7 @@ class EscapeGuesses:
         lambda Z, outside every region): at most one beyond y_to."""
         # past y_to as well (up to twice as far from y_from): a region covering the target itself
         # leaves its best admissible point on the far side (beyond lambda Z the search stops)
-        t = np.linspace(0.0, SEGMENT_REACH, SEGMENT_POINTS)
-        Y = y_from[:, None] + (y_to - y_from)[:, None] * t[None, :]
+        t, Y = _segment(y_from, y_to, SEGMENT_REACH)
         free, blocked = self._free(Y, par)
         in_box = free | blocked  # a blocked point's box membership does not matter below
         beyond = []
@@ -141,8 +146,7 @@ class EscapeGuesses:
     def before_block(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> np.ndarray | None:
         """The last admissible output on the segment from y_from to y_to before its first blocked
         stretch (one segment point short of it), or None when the way is clear or y_from itself is blocked."""
-        t = np.linspace(0.0, 1.0, SEGMENT_POINTS)
-        Y = y_from[:, None] + (y_to - y_from)[:, None] * t[None, :]
+        Y = _segment(y_from, y_to, 1.0)[1]
         free, blocked = self._free(Y, par)
         if not blocked.any() or not free[0]:
             return None
@@ -153,17 +157,20 @@ class EscapeGuesses:
     def crosses_block(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> bool:
         """Whether a steady state on the segment from y_from to y_to is inside a region (y_to lies
         beyond a blocked stretch, seen from y_from)."""
-        t = np.linspace(0.0, 1.0, SEGMENT_POINTS)
-        return bool(self._free(y_from[:, None] + (y_to - y_from)[:, None] * t[None, :], par)[1].any())
+        return bool(self._free(_segment(y_from, y_to, 1.0)[1], par)[1].any())
 
     def _free(self, Y: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For outputs Y [p, SEGMENT_POINTS]: (steady state in lambda Z and outside every region, inside a region)."""
         x_s, u_s, depth = self._segment(Y.T.ravel(), par)
         z = np.vstack([x_s.reshape(SEGMENT_POINTS, -1).T, u_s.reshape(SEGMENT_POINTS, -1).T])
-        in_box = np.all((z >= self._lo[:, None] - BOX_TOLERANCE) & (z <= self._hi[:, None] + BOX_TOLERANCE), axis=0)
+        in_box = self._in_box(z)
         depth = depth.reshape(SEGMENT_POINTS, -1)
         blocked = np.any(depth > 0, axis=1) if depth.size else np.zeros(SEGMENT_POINTS, bool)
         return in_box & ~blocked, blocked
+
+    def _in_box(self, z: np.ndarray) -> np.ndarray:
+        """For steady states z [n + m, K] (x_s over u_s): in lambda Z, to BOX_TOLERANCE [K]."""
+        return np.all((z >= self._lo[:, None] - BOX_TOLERANCE) & (z <= self._hi[:, None] + BOX_TOLERANCE), axis=0)
 
     def penetration_guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
                             regions: Sequence[Region]) -> list[Guess]:

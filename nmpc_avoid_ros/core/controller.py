@@ -216,13 +216,15 @@ class NmpcController:
             return result
         self._pending = None
         self._reseed = False
-        best = Solution(attempt.w, attempt.lam_x, attempt.lam_g, attempt.nlp, attempt.solved, math.nan, math.nan)
+        # the plan's predicted depth, once: the checks below and the escape's base read it (mu = 0: no
+        # avoidance, left unknown until an escape needs it)
+        depth = attempt.nlp.max_depth(attempt.w, par) if s.mu > 0 else math.nan
+        best = Solution(attempt.w, attempt.lam_x, attempt.lam_g, attempt.nlp, attempt.solved, math.nan, depth)
         solve_time = attempt.solve_time
         # a plan that predicts penetration is a local optimum of the penalty (x_a at an ellipse's
         # centre, where its gradient vanishes; a squeeze between two regions): look for one that is clear
         # (in the passage mode the long plan goes on: no guesses; the mode ends as above)
-        penetrating = s.mu > 0 and self.escape.available and not self.passage.active and \
-            best.nlp.max_depth(best.w, par) > VIOLATION_TOLERANCE
+        penetrating = s.mu > 0 and self.escape.available and not self.passage.active and depth > VIOLATION_TOLERANCE
         if self.passage.active:
             pass
         elif penetrating or self._escape_due(best, previous_y_a, y_t, par):
@@ -243,8 +245,9 @@ class NmpcController:
                               attempt.budget_cut)
         result.escape, result.horizon = escape, best.nlp.layout.horizon
         # a region the plan cannot avoid (e.g. one placed over the current state): the input that
-        # predicts the least violation, and say so; the cheap depth check first (mu = 0: no avoidance)
-        if s.mu > 0 and best.nlp.max_depth(best.w, par) > VIOLATION_TOLERANCE:
+        # predicts the least violation, and say so; the cheap depth check first (mu = 0: no avoidance;
+        # every candidate an escape or the passage mode kept carries its own depth)
+        if s.mu > 0 and best.depth > VIOLATION_TOLERANCE:
             self._bound_violation(x, par, result)
         return result
 
@@ -316,7 +319,9 @@ class NmpcController:
         # FATROP solves the guesses itself (measured on a 4-ellipse van der Pol scene: the same plans,
         # 12-14 ms for three guesses); the SQP paths stall from far guesses: the reference solves them
         nlp = self.nlp if self.settings.solver == "fatrop" else (self.cold_nlp or self.nlp)
-        base.cost, base.depth = plan_cost(base.nlp, base.w, par), base.nlp.max_depth(base.w, par)
+        base.cost = plan_cost(base.nlp, base.w, par)
+        if math.isnan(base.depth):
+            base.depth = base.nlp.max_depth(base.w, par)
         y_a = base.nlp.layout.split_w(base.w)[2]
         if penetrating:
             guesses = self.escape.penetration_guesses(x, y_a, y_t, par, self._regions)

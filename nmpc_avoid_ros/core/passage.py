@@ -21,10 +21,11 @@ times the short plan's. Among those, the lowest total cost.
 
 In the mode: every sample solves the long NLP warm-started from its shifted plan (the controller's
 warm-start rules); a failure falls back as usual, the selector simulating the first N inputs of
-the shifted long plan. The mode ends when the state is at rest near the long plan's x_a (within
-PASSAGE_REST, inf-norm): from there the short problem is trivially feasible (stay at x_a), so the
-short NLP takes over, seeded with x_a and u_a. A long plan whose y_a stalls again in front of a
-region ends the same way: its state comes to rest at its x_a, and the short escape tries again.
+the shifted long plan. The mode ends when the long plan stays within PASSAGE_REST (inf-norm) of
+its x_a from stage N - 1 on: its first N stages, ending at x_a, are then a plan of the short NLP,
+which takes over from them (at the latest when the state rests at x_a beyond the region). A long
+plan whose y_a stalls again in front of a region ends the same way, and the short escape tries
+again.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from .step_result import Plan
 
 #: a long plan enters the mode only if its offset cost is below this times the short plan's
 PASSAGE_GAIN = 0.9
-#: the mode ends when the long plan stays this close (inf-norm, state units) to its x_a from stage N on
+#: the mode ends when the long plan stays this close (inf-norm, state units) to its x_a from stage N - 1 on
 PASSAGE_REST = 5e-2
 
 

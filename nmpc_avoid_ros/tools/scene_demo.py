@@ -119,7 +119,7 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
             first_state.append(time.monotonic())
         # lockstep: a target of time t goes out as the state before its first sample k Ts >= t arrives
         while lockstep and pending and (heard["state"] - 1) * sample_time >= pending[0][0] - sample_time - 1e-9:
-            target_pub.publish(Float64MultiArray(data=list(pending.pop(0)[1])))
+            publish_next_target()
 
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, STREAM_QOS)
     node.create_subscription(Float64MultiArray, "state", on_state, STREAM_QOS)
@@ -128,6 +128,11 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
 
     node.create_subscription(MarkerArray, "obstacles", on_obstacles, LATCHED_QOS)
     target_pub = node.create_publisher(Float64MultiArray, "target", LATCHED_QOS)
+
+    def publish_next_target() -> None:
+        """The scene's next target change (`pending`: (t, y) in time order) goes out now."""
+        target_pub.publish(Float64MultiArray(data=list(pending.pop(0)[1])))
+
     logs = out / "logs"
     ros_args = ["--ros-args", "--params-file", str(params)]
     sim_time = ["-p", f"use_sim_time:={str(lockstep).lower()}"]  # lockstep: log times and stamps on the plant's clock
@@ -139,9 +144,9 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
                                        f"explicit_velocity:={str(explicit_velocity).lower()}", *sim_time], env, logs)]
     pending = list(scene.targets)
     try:
-        target_pub.publish(Float64MultiArray(data=list(pending.pop(0)[1])))
+        publish_next_target()
         while pending and pending[0][0] <= 1e-12:  # more than one at t = 0: the last is in force, as offline
-            target_pub.publish(Float64MultiArray(data=list(pending.pop(0)[1])))
+            publish_next_target()
         deadline = time.monotonic() + timeout
 
         def ready() -> bool:
@@ -160,7 +165,7 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
             executor.spin_once(timeout_sec=0.02)
             _check_alive(procs)
             while not lockstep and pending and first_state and time.monotonic() - first_state[0] >= pending[0][0]:
-                target_pub.publish(Float64MultiArray(data=list(pending.pop(0)[1])))
+                publish_next_target()
         if len(samples) < needed:
             raise NmpcError(f"the scene did not complete {needed} samples in {timeout:.0f} s "
                             f"({heard['state']} states, {len(samples)} samples)")
