@@ -33,12 +33,18 @@ def shipped() -> ControllerSettings:
     return ControllerSettings.from_params(params).replace(max_solve_time=2.0)
 
 
-def run_vdp_0100(settings: ControllerSettings):
+def run_vdp_0100(settings: ControllerSettings, on_step=None):
     region = Ellipse(*VDP_0100["ellipse"])
     controller = NmpcController(settings)
     results = []
+
+    def record(k, result):
+        results.append(result)
+        if on_step:
+            on_step(k, result)
+
     run = run_closed_loop(controller, VDP_0100["x0"], VDP_0100["target"], STEPS,
-                          regions=lambda k: [region] if k == 0 else None, on_step=lambda k, r: results.append(r))
+                          regions=lambda k: [region] if k == 0 else None, on_step=record)
     depth = max(region.depth(x) for x in run.x)
     keep_in = float(np.max(np.abs(run.x[:, 0] * run.x[:, 1])) - 2.0)
     return controller, run, results, max(depth, keep_in)

@@ -315,6 +315,16 @@ def lowest_cost(nlp: NlpBase, x: np.ndarray, par: np.ndarray, base: Solution, gu
     return best, report, spent
 
 
+def guess_batch(guesses: Sequence[Guess], start: int, per_sample: int) -> tuple[list[Guess], int]:
+    """The guesses to solve this sample: `per_sample` of them from index `start` (all if per_sample is 0),
+    and how many remain after them. A start past the end (the list shrank) starts over."""
+    if per_sample <= 0:
+        return list(guesses), 0
+    start = start if start < len(guesses) else 0
+    batch = list(guesses[start:start + per_sample])
+    return batch, len(guesses) - start - len(batch)
+
+
 def solve_guess(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess, feasibility_tolerance: float
                 ) -> tuple[Solution | None, str, float]:
     """Solve from one guess (zero multipliers): the plan if it satisfies the hard constraints (solved,

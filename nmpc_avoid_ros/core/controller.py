@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .candidates import EscapeGuesses, Solution, lowest_cost, plan_cost
+from .candidates import EscapeGuesses, Solution, guess_batch, lowest_cost, plan_cost
 from .errors import ConfigError, InputError
 from .fallback import VIOLATION_TOLERANCE, FallbackSelector
 from .models import Model, make_model
@@ -84,6 +84,8 @@ class NmpcController:
         self.escape = EscapeGuesses(self.cold_nlp or self.nlp, self.model, self.settings)
         # samples to wait before the next escape attempt (one that found nothing better)
         self._escape_wait = 0
+        # with escape_guesses_per_sample: the index of the next escape guess to solve (its batch)
+        self._escape_next = 0
         self._overrides = 0  # consecutive samples whose avoidable plan penetration was overridden
         # the passage mode's NLP: the same problem with the longer horizon, built here once
         long_nlp = None
@@ -168,8 +170,10 @@ class NmpcController:
         self._pending = None
         self._reseed = False
         self._escape_wait = 0
+        self._escape_next = 0
         self._overrides = 0
         self.passage.active = self.passage.due = False
+        self.passage.next_guess = 0
 
     def parameters(self, x: np.ndarray, y_t: np.ndarray, time: float | None = None) -> np.ndarray:
         """The NLP parameter vector for state x [n] measured at `time` (s) and target y_t [p] with the
@@ -327,11 +331,19 @@ class NmpcController:
             guesses = self.escape.penetration_guesses(x, y_a, y_t, par, self._regions)
         else:
             guesses = self.escape.guesses(x, y_a, y_t, par, self._regions)
-        best, tried, spent = lowest_cost(nlp, x, par, base, guesses, time_left, self.settings.feasibility_tolerance,
+        # a penetrating plan is a safety matter: all its guesses now; a stall's may take several samples
+        batch, rest = (guesses, 0) if penetrating else guess_batch(guesses, self._escape_next,
+                                                                    self.settings.escape_guesses_per_sample)
+        best, tried, spent = lowest_cost(nlp, x, par, base, batch, time_left, self.settings.feasibility_tolerance,
                                          VIOLATION_TOLERANCE)
-        if best is base and not penetrating:  # nothing better here: do not try again every sample while at rest
+        self._escape_next = 0
+        if best is base and rest:  # the next batch on the next sample (still stalled: the base held)
+            self._escape_next = len(guesses) - rest
+            tried.append(f"{rest} more next sample")
+        elif best is base and not penetrating:  # nothing better here: do not try again every sample while at rest
             self._escape_wait = ESCAPE_RETRY_SAMPLES
             self.passage.due = self.passage.available  # the long horizon next sample (its own budget)
+            self.passage.next_guess = 0
         return best, tried, spent
 
     def _try_passage(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution,
@@ -343,9 +355,11 @@ class NmpcController:
         if not self.escape.should_try(y_a, previous_y_a, y_t, par):
             return base, [], 0.0
         entered, tried, spent = self.passage.attempt(x, y_t, par, base, self._regions, time_left,
-                                                     self.settings.feasibility_tolerance)
+                                                     self.settings.feasibility_tolerance,
+                                                     self.settings.escape_guesses_per_sample)
         if entered is None:
-            self._escape_wait = ESCAPE_RETRY_SAMPLES
+            if not self.passage.due:  # every guess tried in vain (else the next batch on the next sample)
+                self._escape_wait = ESCAPE_RETRY_SAMPLES
             return base, tried, spent
         self.passage.active = True
         return entered, tried, spent

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .candidates import EscapeGuesses, Solution, solve_guess
+from .candidates import EscapeGuesses, Solution, guess_batch, solve_guess
 from .errors import ConfigError
 from .fallback import VIOLATION_TOLERANCE
 from .models import Model
@@ -59,6 +59,7 @@ class Passage:
         self.nlp = nlp
         self.active = False  # in passage mode: the controller's plan is the long NLP's
         self.due = False  # the short escape found nothing: try the long NLP on the next stalled sample
+        self.next_guess = 0  # with guesses per sample: the index of the next guess to solve
         self.horizon = 0 if nlp is None else nlp.layout.horizon
         self.guesses: EscapeGuesses | None = None
         if nlp is None:
@@ -81,15 +82,20 @@ class Passage:
         return 0 if self.nlp is None else self.nlp.solver_builds
 
     def attempt(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution, regions: Sequence[Region],
-                time_left: float, feasibility_tolerance: float) -> tuple[Solution | None, list[str], float]:
-        """Solve the long NLP from the escape guesses while time is left; the lowest-cost plan that may
-        enter the mode (see the module docstring), or None. Returns (plan, one line per guess, seconds)."""
+                time_left: float, feasibility_tolerance: float, per_sample: int = 0
+                ) -> tuple[Solution | None, list[str], float]:
+        """Solve the long NLP from the escape guesses while time is left (`per_sample` > 0: that many from
+        `next_guess` on; if none enters, the mode stays `due` for the next batch); the lowest-cost plan
+        that may enter the mode (see the module docstring), or None. Returns (plan, one line per guess,
+        seconds)."""
         assert self.nlp is not None and self.guesses is not None
-        self.due = False
         y_a = base.nlp.layout.split_w(base.w)[2].copy()
         offset = float(base.nlp.terms(base.w, par)[0][0])
+        guesses = self.guesses.guesses(x, y_a, y_t, par, regions)
+        batch, rest = guess_batch(guesses, self.next_guess, per_sample)
+        self.due, self.next_guess = False, 0
         best, report, spent, slowest = None, [], 0.0, 0.0
-        for guess in self.guesses.guesses(x, y_a, y_t, par, regions):
+        for guess in batch:
             if spent + slowest >= time_left:  # as in lowest_cost: start a solve only if it is likely to fit
                 report.append(f"passage {guess.label}: not tried (sample budget spent)")
                 continue
@@ -108,6 +114,9 @@ class Passage:
                 best = candidate
         if best is not None:
             best.label = f"passage:{best.label}"
+        elif rest:
+            self.due, self.next_guess = True, len(guesses) - rest
+            report.append(f"passage: {rest} more next sample")
         return best, report, spent
 
     def can_hand_back(self, plan: Plan | None, horizon: int) -> bool:

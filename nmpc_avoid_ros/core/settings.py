@@ -58,6 +58,10 @@ class ControllerSettings:
     escape_horizon: int = setting(0, "horizon of the passage mode's second NLP (samples), tried when y_a stalls in "
                                      "front of a region the N-sample plan cannot pass (core/passage.py); 0: off, "
                                      "else greater than horizon", low=0, high=2000)
+    escape_guesses_per_sample: int = setting(
+        0, "local-minimum escape and passage-mode guesses solved per sample (core/candidates.py); the rest "
+           "follow on the next samples while y_a stays stalled, so one sample's work stays bounded (a real-time "
+           "path's worst sample); 0: all in one sample", runtime=True, low=0, high=1000)
     discretization: str = setting("euler", "prediction model discretisation: euler (as in the paper) or rk4",
                                   choices=DISCRETISATIONS)
     state_min: tuple[float, ...] = setting((-6.0, -2.0), "lower bounds of the state box of Z (n values)",
