@@ -21,13 +21,14 @@ from .candidates import EscapeGuesses, Solution, guess_batch, lowest_cost, plan_
 from .errors import ConfigError, InputError
 from .fallback import VIOLATION_TOLERANCE, FallbackSelector
 from .models import Model, make_model
-from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase, TrackingNlp
+from .nlp import NlpBase, TrackingNlp
 from .passage import Passage
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
 from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
 from .status import StepStatus
-from .step_result import Attempt, Plan, StepResult, validate_vector
+from .step_result import Attempt, Plan, StepResult, attempt, validate_vector
+from .tiers import Tiers
 
 #: samples without a new escape attempt after one that found no better plan (the scene is static)
 ESCAPE_RETRY_SAMPLES = 10
@@ -94,6 +95,8 @@ class NmpcController:
                                 self.model)
         self.passage = Passage(long_nlp, self.nlp, self.model, self.settings)
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
+        self.tiers = Tiers(self.settings, self.model, self.nlp, make_nlp)
+        self._tier_slots: dict[int, np.ndarray] = {}  # static slots per tier NLP (id), packed once per region set
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
 
@@ -107,7 +110,7 @@ class NmpcController:
         built in the constructor: nothing at run time (a target, obstacles, mu, the weights, entering
         or leaving the passage mode) adds to it.
         """
-        parts = (self.nlp, self.cold_nlp, self.fallback, self.passage)
+        parts = (self.nlp, self.cold_nlp, self.fallback, self.passage, self.tiers)
         return sum(part.solver_builds for part in parts if part is not None)
 
     @property
@@ -129,18 +132,26 @@ class NmpcController:
         """Replace the obstacle regions (RegionError if they do not fit the slots; nothing changes then)."""
         slots = self.nlp.slot_layout.pack(list(regions), self.nlp.output_frame_available, predict=False)
         self._regions, self._slots = tuple(regions), slots
+        self._tier_slots = {}
         self._moving = any(r.moving for r in self._regions)
 
-    def slot_values(self, time: float | None = None) -> np.ndarray:
-        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s).
+    def slot_values(self, time: float | None = None, nlp: NlpBase | None = None) -> np.ndarray:
+        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s), in the slot
+        layout of `nlp` (default: the regular NLP; else an ellipse tier, core/tiers.py).
 
         With `predict_obstacles` on, moving regions are placed where they are at `time` and
         predicted stage by stage (time None: each pose counts as valid at x(0)); off, every region
-        stays where it was at its stamp. Static regions only: the slots packed by `set_regions`.
+        stays where it was at its stamp. Static regions only: the slots packed once per region set.
         """
-        if not (self._moving and self.settings.predict_obstacles):
+        nlp = nlp or self.nlp
+        if self._moving and self.settings.predict_obstacles:
+            return nlp.slot_layout.pack(list(self._regions), nlp.output_frame_available, time)
+        if nlp is self.nlp:
             return self._slots
-        return self.nlp.slot_layout.pack(list(self._regions), self.nlp.output_frame_available, time)
+        if id(nlp) not in self._tier_slots:
+            self._tier_slots[id(nlp)] = nlp.slot_layout.pack(list(self._regions), nlp.output_frame_available,
+                                                             predict=False)
+        return self._tier_slots[id(nlp)]
 
     def set_keep_in_active(self, active: Sequence[bool]) -> None:
         """Switch the configured algebraic regions on or off (one flag per `keep_in` entry)."""
@@ -209,7 +220,7 @@ class NmpcController:
             # the long plan reaches its x_a within N samples (at rest beyond the region at the latest):
             # its first N stages are a plan of the regular NLP, which takes over
             self._plan, self._pending, escape = self.passage.hand_back(self._plan, self.nlp), None, "passage ended"
-        attempt = self._solve(x, y_t, par)
+        attempt = self._solve(x, y_t, par, time)
         if not attempt.usable:
             self._pending = (attempt.w, attempt.lam_x, attempt.lam_g) if (
                 attempt.finite and attempt.budget_cut and attempt.nlp is self.active_nlp) else None
@@ -275,11 +286,17 @@ class NmpcController:
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
 
-    def _solve(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray) -> Attempt:
-        """The sample's regular solve: the fast path from the shifted plan (cold: the cold-start solvers)."""
+    def _solve(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, time: float | None = None) -> Attempt:
+        """The sample's regular solve: the fast path from the shifted plan (cold: the cold-start solvers;
+        an ellipse tier where one holds the regions, core/tiers.py)."""
         s = self.settings
         cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed) and \
             not self.passage.active
+        tier = None if cold or self._plan is None or self._pending is not None or self.passage.active else \
+            self.tiers.pick(self._regions)
+        if tier is not None:  # the regular NLP with fewer (empty) slots; the plan comes back in its layout
+            return self.tiers.solve(tier, self._initial_guess(x, y_t, tier)[0], x, par,
+                                    self.slot_values(time, tier), s)
         # SQP paths try a cold start themselves first (cheap, and it works on small problems);
         # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
         if not cold:
@@ -293,20 +310,12 @@ class NmpcController:
         elapsed = 0.0
         for nlp in nlps:
             w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
-            w0 = nlp.fill_slacks(w0, par)
-            w, lam_x, lam_g, stats, solve_time = nlp.solve(w0, par, lam_x0, lam_g0, cold=cold)
-            elapsed += solve_time
-            solver_status = str(stats.get("return_status", "unknown"))
-            iterations = int(stats.get("iter_count", -1))
-            solved = solver_status in SOLVED
-            budget_cut = solver_status in BUDGET_EXHAUSTED or (not solved and iterations >= budget)
-            finite = bool(np.all(np.isfinite(w)))
-            # an unconverged iterate (budget cut, or a stalled SQP line search) is a valid plan when
-            # it is feasible: the paper's recursive feasibility needs feasibility, not optimality
-            usable = finite and (solved or nlp.violation(w, par) <= s.feasibility_tolerance)
-            if usable:
+            result = attempt(nlp, nlp.fill_slacks(w0, par), par, lam_x0, lam_g0, budget, s.feasibility_tolerance, cold)
+            elapsed += result.solve_time
+            if result.usable:
                 break
-        return Attempt(w, lam_x, lam_g, nlp, solver_status, iterations, elapsed, solved, usable, budget_cut, finite)
+        result.solve_time = elapsed
+        return result
 
     def _escape_due(self, base: Solution, previous_y_a: np.ndarray | None, y_t: np.ndarray, par: np.ndarray) -> bool:
         """Try escape guesses now? Stalled in front of a blocking region, and not tried in vain just before."""

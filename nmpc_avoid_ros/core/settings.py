@@ -87,6 +87,10 @@ class ControllerSettings:
     max_ellipses: int = setting(8, "capacity of ellipse obstacle slots (CYLINDER/SPHERE markers)", low=0, high=256)
     max_polygons: int = setting(4, "capacity of polygon obstacle slots (CUBE/LINE_STRIP markers)", low=0, high=256)
     max_polygon_vertices: int = setting(8, "largest number of vertices of a polygon obstacle", low=3, high=64)
+    ellipse_tiers: tuple[int, ...] = setting(
+        (), "ellipse capacities of smaller copies of the regular NLP (no polygon slots), built once: a sample whose "
+            "regions fit one solves the smallest that does (core/tiers.py; a structure-exploiting solver pays for "
+            "every slot, used or not); each below max_ellipses; empty: off", low=0, high=256)
     solver: str = setting("ipopt", "NLP solver path (simulate --solver list describes them)", choices=SOLVERS)
     codegen: bool = setting(False, "generate the solver's functions as C, compile them (cc) and cache the library "
                                    "by problem hash")
@@ -147,6 +151,9 @@ class ControllerSettings:
         if self.escape_horizon and self.escape_horizon <= self.horizon:
             raise ConfigError(f"escape_horizon must be 0 (off) or greater than horizon = {self.horizon} "
                               f"(the passage mode plans further than the regular NLP), got {self.escape_horizon}")
+        if any(k >= self.max_ellipses for k in self.ellipse_tiers):
+            raise ConfigError(f"ellipse_tiers must each be below max_ellipses = {self.max_ellipses} (a tier is a "
+                              f"smaller copy of the NLP), got {list(self.ellipse_tiers)}")
         for name in ("plane", "output_plane"):
             plane = getattr(self, name)
             if plane[0] == plane[1]:

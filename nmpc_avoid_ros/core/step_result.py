@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
-from .nlp import NlpBase
+from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase
 from .status import StepStatus
 
 
@@ -84,6 +84,24 @@ class Attempt:
     usable: bool
     budget_cut: bool
     finite: bool
+
+
+def attempt(nlp: NlpBase, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, budget: int,
+            feasibility_tolerance: float, cold: bool = False) -> Attempt:
+    """One solver call of `nlp` from the guess w0 [n_w] (slacks filled) and what it gave.
+
+    `budget` is the call's iteration budget: an unsolved call that used it all was cut by it. An
+    unconverged iterate (budget cut, or a stalled line search) is usable when it is feasible: the
+    paper's recursive feasibility needs feasibility, not optimality.
+    """
+    w, lam_x, lam_g, stats, solve_time = nlp.solve(w0, par, lam_x0, lam_g0, cold=cold)
+    solver_status = str(stats.get("return_status", "unknown"))
+    iterations = int(stats.get("iter_count", -1))
+    solved = solver_status in SOLVED
+    budget_cut = solver_status in BUDGET_EXHAUSTED or (not solved and iterations >= budget)
+    finite = bool(np.all(np.isfinite(w)))
+    usable = finite and (solved or nlp.violation(w, par) <= feasibility_tolerance)
+    return Attempt(w, lam_x, lam_g, nlp, solver_status, iterations, solve_time, solved, usable, budget_cut, finite)
 
 
 @dataclass

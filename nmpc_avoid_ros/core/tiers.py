@@ -1,0 +1,77 @@
+"""Ellipse tiers: smaller copies of the regular NLP for samples with few regions.
+
+Why: the region capacity (max_ellipses, max_polygons) is structure. Every slot adds a penalty
+slack per stage, used or not (an empty slot's region function is a constant below zero), and a
+structure-exploiting solver such as FATROP pays for each: its Riccati recursion grows with the
+cube of the stage's controls, which carry the slacks, and the inactive rows cost interior-point
+iterations. Measured on the mobile robot at N = 20 among 4 ellipses (FATROP, compiled): 7.6 ms a
+sample with the shipped 6 ellipse + 3 polygon slots, 3.6 ms with 4 ellipse slots.
+
+What: for each capacity k in `ellipse_tiers`, the same problem with k ellipse slots and no polygon
+slots, built once in the controller's constructor (nothing is built at run time). A sample whose
+regions are ellipses only, at most k of them, solves the smallest tier that holds them; its plan
+(inputs, states, y_a) is written back in the regular NLP's layout, with the slacks filled from the
+full parameter vector, so everything after the solve (escape, fallback, certificate, the next warm
+start) sees the regular NLP. The tiers' parameter vectors are the regular one with the shorter
+slot block: the problem is the same, only the empty slots are missing.
+
+Not used: for a cold start (the reference solves it), in the passage mode (its own NLP), or after a
+budget-cut sample (its iterate is continued by the regular NLP).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from .models import Model
+from .nlp import NlpBase
+from .regions import Ellipse, Region
+from .settings import ControllerSettings
+from .step_result import Attempt, attempt
+
+
+class Tiers:
+    """The tier NLPs of one controller (none when `ellipse_tiers` is empty)."""
+
+    def __init__(self, settings: ControllerSettings, model: Model, regular: NlpBase,
+                 make_nlp: Callable[[ControllerSettings, Model], NlpBase]) -> None:
+        self.regular = regular
+        self.nlps: list[tuple[int, NlpBase]] = [
+            (k, make_nlp(settings.replace(max_ellipses=k, max_polygons=0, ellipse_tiers=()), model))
+            for k in sorted(set(settings.ellipse_tiers))]
+        # the parameter vector before the slot block: x0, y_t, kappa, mu, weights, keep-in flags
+        self._prefix = _parameter_count(regular) - regular.slot_layout.size
+
+    @property
+    def solver_builds(self) -> int:
+        return sum(nlp.solver_builds for _, nlp in self.nlps)
+
+    def pick(self, regions: Sequence[Region]) -> NlpBase | None:
+        """The smallest tier that holds the regions (ellipses only), or None (the regular NLP)."""
+        if not self.nlps or any(not isinstance(r, Ellipse) for r in regions):
+            return None
+        return next((nlp for k, nlp in self.nlps if len(regions) <= k), None)
+
+    def solve(self, tier: NlpBase, w0: np.ndarray, x: np.ndarray, par: np.ndarray, slots: np.ndarray,
+              settings: ControllerSettings) -> Attempt:
+        """Solve `tier` from w0 [its n_w] with the regular parameter vector `par` whose slot block is
+        replaced by the tier's `slots`; the outcome as an Attempt of the regular NLP: w in its layout
+        (slacks filled at `par`), multipliers zero (no solver path here warm-starts them)."""
+        tier_par = np.concatenate([par[:self._prefix], slots])
+        result = attempt(tier, tier.fill_slacks(w0, tier_par), tier_par, np.zeros(tier.layout.n_w),
+                         np.zeros(tier.lbg.size), settings.max_iterations, settings.feasibility_tolerance)
+        regular = self.regular
+        if result.finite:
+            U, X, y_a, rest = tier.layout.split_w(result.w)
+            result.w = regular.fill_slacks(regular.layout.join_w(U, X, y_a, rest, x0=x), par)
+        else:
+            result.w = np.full(regular.layout.n_w, np.nan)
+        result.lam_x, result.lam_g, result.nlp = np.zeros(regular.layout.n_w), np.zeros(regular.lbg.size), regular
+        return result
+
+
+def _parameter_count(nlp: NlpBase) -> int:
+    """Length of the NLP's parameter vector (its solver's 'p' input)."""
+    return int(nlp.solver.size1_in(nlp.solver.index_in("p")))
