@@ -14,7 +14,7 @@ sys.path.insert(0, str(Path(__file__).parent))  # test helpers (rosgraph)
 
 from nmpc_avoid_ros.core.closed_loop import ClosedLoopRun, run_closed_loop
 from nmpc_avoid_ros.core.controller import NmpcController
-from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
 
 PAPER_X0 = [-5.0, 0.0]
 PAPER_TARGET = [5.0]
@@ -31,6 +31,20 @@ def paper_run(mu: float, plant: str) -> ClosedLoopRun:
 @pytest.fixture
 def paper():
     return paper_run
+
+
+@functools.cache
+def shipped_paper_run(mu: float, plant: str) -> ClosedLoopRun:
+    """The paper scenario with the shipped config/van_der_pol.yaml controller (the real-time path) and
+    the given mu: the offline loop `simulate`, the demo and the nodes run with that file."""
+    params = load_params_file(default_config_path()).section("controller")
+    controller = NmpcController(ControllerSettings.from_params(params).replace(mu=mu))
+    return run_closed_loop(controller, PAPER_X0, PAPER_TARGET, PAPER_STEPS, plant)
+
+
+@pytest.fixture
+def shipped_paper():
+    return shipped_paper_run
 
 
 _DOMAIN_BASE = 10 + os.getpid() % 40  # distinct from other concurrent test sessions on this host

@@ -43,7 +43,7 @@ def test_demo_leaves_bags_metrics_and_figures(demo_out):
 
 
 @pytest.mark.parametrize("name", RUNS)
-def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo_out, name, paper):
+def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo_out, name, shipped_paper):
     with AnyReader([demo_out / f"{name}.mcap"]) as reader:
         types = {c.topic: c.msgtype for c in reader.connections}
         counts = {c.topic: c.msgcount for c in reader.connections}
@@ -65,16 +65,16 @@ def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo
     # recorder, or the last command the recorder but no plant: the counts differ by at most one
     assert abs(counts["/command"] - counts["/state"]) <= 1
     # the decoded states are what the plant published: the offline loop of the same configuration
-    np.testing.assert_allclose(np.array(states[:51]), paper(RUNS[name], "euler").x, atol=1e-12)
+    np.testing.assert_allclose(np.array(states[:51]), shipped_paper(RUNS[name], "euler").x, atol=1e-12)
 
 
-def test_analyze_of_the_paper_bags_matches_simulate(demo_out, paper, tmp_path):
+def test_analyze_of_the_paper_bags_matches_simulate(demo_out, shipped_paper, tmp_path):
     res = cli("analyze", str(demo_out / "with_avoidance.mcap"), str(demo_out / "without_avoidance.mcap"),
               "--out", str(tmp_path))
     assert res.returncode == 0, res.stderr
     metrics = {b["bag"].rsplit("/", 1)[-1]: b for b in json.loads((tmp_path / "metrics.json").read_text())["bags"]}
     for name, mu in RUNS.items():
-        offline = paper(mu, "euler")
+        offline = shipped_paper(mu, "euler")
         from nmpc_avoid_ros.core.closed_loop import max_abs_product, settling_step
 
         m = metrics[f"{name}.mcap"]
@@ -91,10 +91,10 @@ def test_analyze_of_the_paper_bags_matches_simulate(demo_out, paper, tmp_path):
 
 
 @pytest.mark.parametrize("name", RUNS)
-def test_lockstep_certificate_is_the_offline_loops(demo_out, name, paper):
+def test_lockstep_certificate_is_the_offline_loops(demo_out, name, shipped_paper):
     """The node's per-sample certificate (diagnostics) equals the offline loop's, with no violation."""
     run = load_run(demo_out / f"{name}.mcap")
-    offline = paper(RUNS[name], "euler").certificate
+    offline = shipped_paper(RUNS[name], "euler").certificate
     assert run.counters["certificate_violations"] == 0
     values = run.certificate["value_function"][:50]
     np.testing.assert_allclose(values, [c["value_function"] for c in offline], rtol=1e-12)
@@ -186,7 +186,8 @@ def test_a_controller_sample_with_an_unknown_status_gets_a_clear_error(tmp_path)
     assert res.returncode == 1 and "panic" in res.stderr and "Traceback" not in res.stderr
 
 
-def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline_mu_0_loop(demo_out, paper, tmp_path):
+def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline_mu_0_loop(demo_out, shipped_paper,
+                                                                                           tmp_path):
     from nmpc_avoid_ros.tools.replay import main as replay_main  # in process: no interpreter start per call
 
     for name in RUNS:
@@ -198,7 +199,7 @@ def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline
     assert replay_main([str(demo_out / "with_avoidance.mcap"), "--closed-loop", "--mu", "0", "--json",
                         str(tmp_path / "mu0.json"), "--out", str(tmp_path / "mu0")]) == 0
     mu0 = json.loads((tmp_path / "mu0.json").read_text())
-    offline = paper(0.0, "euler")
+    offline = shipped_paper(0.0, "euler")
     np.testing.assert_allclose(np.array(mu0["x"])[:51], offline.x, atol=1e-9)
     assert mu0["summary"]["settling_step"] == 18
     assert mu0["summary"]["max_abs_x1x2"] == pytest.approx(10.0, abs=1e-3)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from nmpc_avoid_ros.core.closed_loop import max_abs_product, settling_step
 from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.core.models import MODELS, make_model
 from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
@@ -66,9 +67,11 @@ def test_invalid_settings_are_refused_with_the_setting_named(changes, message):
 def test_shipped_config_is_the_papers_example():
     params = load_params_file(default_config_path())
     settings = ControllerSettings.from_params(params.section("controller"))
-    # the paper's problem; the budget and the passage mode's horizon (never triggered by the paper's loops) are ours
+    # the paper's problem; the budget, the passage mode's horizon (never triggered by the paper's loops)
+    # and the real-time path (FATROP, compiled, one escape guess per sample, ellipse tiers) are ours
     assert settings.escape_horizon == 10
-    assert settings == ControllerSettings(max_solve_time=settings.max_solve_time, escape_horizon=10)
+    assert settings == ControllerSettings(max_solve_time=settings.max_solve_time, escape_horizon=10, solver="fatrop",
+                                          codegen=True, escape_guesses_per_sample=1, ellipse_tiers=(0, 2, 4))
     assert params.section("plant")["initial_state"] == [-5.0, 0.0]
     assert params.section("scenario")["target"] == [5.0]
 
@@ -85,3 +88,15 @@ def test_params_file_errors_are_clear(tmp_path):
         load_params_file(tmp_path / "missing.yaml")
     with pytest.raises(ConfigError, match="unknown controller parameter"):
         ControllerSettings.from_params({"muu": 1.0})
+
+
+@pytest.mark.parametrize("mu,plant,settling,max_product", [
+    (0.0, "euler", 18, 10.0), (1e8, "euler", 33, 2.0002), (0.0, "continuous", 22, 6.3445),
+    (1e8, "continuous", 38, 1.8363)])
+def test_the_shipped_real_time_path_keeps_the_papers_four_loops(paper, shipped_paper, mu, plant, settling, max_product):
+    """The shipped config solves with FATROP; its loops are the IPOPT reference's to the solvers' tolerance."""
+    fast, reference = shipped_paper(mu, plant), paper(mu, plant)
+    np.testing.assert_allclose(fast.x, reference.x, atol=1e-4)
+    assert settling_step(fast.x[:, 0], 5.0, 0.05) == settling_step(reference.x[:, 0], 5.0, 0.05) == settling
+    assert max_abs_product(fast.x) == pytest.approx(max_product, abs=1e-4)
+    assert set(fast.status) == {"ok"}

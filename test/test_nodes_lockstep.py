@@ -29,7 +29,7 @@ def run_lockstep(ros_graph, mu: float, extra: tuple[str, ...] = ()) -> np.ndarra
 
 
 @pytest.mark.parametrize("mu", [0.0, 1e8])
-def test_lockstep_through_dds_reproduces_the_offline_loop(ros_graph, paper, mu):
+def test_lockstep_through_dds_reproduces_the_offline_loop(ros_graph, shipped_paper, mu):
     states = run_lockstep(ros_graph, mu)
-    offline = paper(mu, "euler")
+    offline = shipped_paper(mu, "euler")
     np.testing.assert_allclose(states, offline.x, atol=1e-6, rtol=0)

@@ -33,6 +33,10 @@ def shipped() -> ControllerSettings:
     return ControllerSettings.from_params(params).replace(max_solve_time=2.0)
 
 
+def parameter_count(nlp) -> int:
+    return int(nlp.solver.size1_in(nlp.solver.index_in("p")))
+
+
 def run_vdp_0100(settings: ControllerSettings, on_step=None):
     region = Ellipse(*VDP_0100["ellipse"])
     controller = NmpcController(settings)
@@ -70,7 +74,9 @@ def test_campaign_scene_is_passed_with_the_mode_and_rested_in_front_of_without(w
     # the long NLP from entry to the hand-back, the regular one before and after
     assert all(r.horizon == long_ and r.inputs.shape == (long_, 1) for r in results[entered[0]:ended[0]])
     assert all(r.horizon == 5 for r in results[:entered[0]] + results[ended[0]:])
-    assert run.info["nlp_builds"] == controller.nlp_builds == 3  # + the long NLP, built once
+    # built once: the long NLP adds one build to the regular controller's; nothing during the run
+    without_mode = NmpcController(shipped().replace(escape_horizon=0))
+    assert run.info["nlp_builds"] == controller.nlp_builds == without_mode.nlp_builds + 1
 
     _, alone, _, penetration = run_vdp_0100(shipped().replace(escape_horizon=0))
     assert alone.x[-1, 0] > 3.5, "without the passage mode the loop rests in front of the ellipse"
@@ -121,7 +127,7 @@ def test_the_two_nlps_share_the_parameter_vector():
     controller = NmpcController(shipped())
     short, long_ = controller.nlp, controller.passage.nlp
     assert long_.layout.horizon == controller.settings.escape_horizon > short.layout.horizon
-    assert long_.layout.n_param == short.layout.n_param and long_.slot_layout == short.slot_layout
+    assert parameter_count(long_) == parameter_count(short) and long_.slot_layout == short.slot_layout
     # a moving ellipse: stage k of either NLP sees it at k Ts from the same slot parameters
     controller.set_regions([Ellipse((0.0, 0.5), (0.4, 0.3), 0.0, "state", (0.2, 0.0))])
     par = controller.parameters(np.array([-5.0, 0.0]), np.array([5.0]), time=0.0)
@@ -139,12 +145,15 @@ def test_nlp_builds_counts_the_long_nlp_and_a_passage_adds_none(monkeypatch):
 
     monkeypatch.setattr(casadi, "nlpsol", counting)
     controller = NmpcController(shipped())
-    assert constructed == ["ipopt"] * 3 and controller.nlp_builds == 3  # short, recovery, long
+    # FATROP: the regular NLP, the long one and the 3 ellipse tiers; IPOPT: the cold-start reference and the recovery
+    assert sorted(constructed) == ["fatrop"] * 5 + ["ipopt"] * 2 and controller.nlp_builds == 7
     x, y_t = np.array(VDP_0100["x0"]), np.array(VDP_0100["target"])
     controller.set_regions([Ellipse(*VDP_0100["ellipse"])])
-    for _ in range(6):
+    for _ in range(12):  # the stall escape's 3 guesses, one per sample, then the passage
         x = controller.step(x, y_t).states[1]
-    assert controller.passage.active and len(constructed) == controller.nlp_builds == 3
+        if controller.passage.active:
+            break
+    assert controller.passage.active and len(constructed) == controller.nlp_builds == 7
 
 
 @pytest.mark.parametrize("changes, message", [

@@ -60,9 +60,11 @@ def variant_factories() -> dict[str, Callable[[ControllerSettings, Model], Stepp
 
     return {
         REFERENCE: PEERS["opti_ipopt_paper"],
-        "ours_ipopt": ours("ipopt", codegen=False),
+        # the reference IPOPT path as the configs shipped it before the fast path: every escape guess in
+        # one sample, no ellipse tiers (core/tiers.py)
+        "ours_ipopt": ours("ipopt", codegen=False, **IPOPT_REFERENCE),
         "ours_fatrop": ours("fatrop"),
-        "ours_ipopt_no_prediction": ours("ipopt", codegen=False, predict_obstacles=False),
+        "ours_ipopt_no_prediction": ours("ipopt", codegen=False, predict_obstacles=False, **IPOPT_REFERENCE),
         "ours_fatrop_no_prediction": ours("fatrop", predict_obstacles=False),
         "ours_sqp": ours("sqp"),
         "ours_sqp_hpipm": ours("sqp_hpipm"),
@@ -71,6 +73,9 @@ def variant_factories() -> dict[str, Callable[[ControllerSettings, Model], Stepp
         "do_mpc_unshifted": PEERS["do_mpc_unshifted"],
     }
 
+
+#: what the reference IPOPT variants change in the shipped configs (the fast path's own settings)
+IPOPT_REFERENCE = {"escape_guesses_per_sample": 0, "ellipse_tiers": ()}
 
 #: the real-time variant's fixed work budget: SQP iterations per sample
 REAL_TIME_ITERATIONS = 5
@@ -98,7 +103,7 @@ def _config(name: str) -> dict[str, Any]:
 
 def paper_scenarios(steps: int) -> list[Scenario]:
     """The four paper runs (mu 0 / 1e8, Euler / continuous plant)."""
-    base = ControllerSettings.from_params(_config("van_der_pol.yaml")).replace(max_ellipses=0, max_polygons=0)
+    base = with_capacity(ControllerSettings.from_params(_config("van_der_pol.yaml")), 0)
     model = make_model(base.model)
     return [Scenario(f"paper/mu={mu:g}/{plant}", base.replace(mu=mu), model, np.array([-5.0, 0.0]),
                      np.array([5.0]), steps, plant)
@@ -117,15 +122,20 @@ VDP_ELLIPSES = (Ellipse((-3.0, 0.75), (0.6, 0.25), 0.2), Ellipse((-0.5, 1.5), (0
 
 def vdp_ellipse_scenario(steps: int) -> Scenario:
     """The paper's van der Pol run (N = 5, mu = 1e8, Euler plant) among the 4 VDP_ELLIPSES."""
-    s = ControllerSettings.from_params(_config("van_der_pol.yaml")).replace(max_ellipses=4, max_polygons=0)
+    s = with_capacity(ControllerSettings.from_params(_config("van_der_pol.yaml")), 4)
     return Scenario("vdp_4_ellipses", s, make_model(s.model), np.array([-5.0, 0.0]), np.array([5.0]), steps,
                     "euler", lambda k: VDP_ELLIPSES if k == 0 else None)
 
 
 def robot_settings(horizon: int) -> ControllerSettings:
     """The mobile robot's config with room for exactly 4 ellipses and no polygons."""
-    return ControllerSettings.from_params(_config("mobile_robot.yaml")).replace(
-        horizon=horizon, max_ellipses=4, max_polygons=0)
+    return with_capacity(ControllerSettings.from_params(_config("mobile_robot.yaml")).replace(horizon=horizon), 4)
+
+
+def with_capacity(settings: ControllerSettings, ellipses: int) -> ControllerSettings:
+    """Room for exactly `ellipses` ellipses and no polygons (the ellipse tiers below it kept)."""
+    return settings.replace(max_ellipses=ellipses, max_polygons=0,
+                            ellipse_tiers=tuple(k for k in settings.ellipse_tiers if k < ellipses))
 
 
 def scaling_scenarios(horizons: Sequence[int], steps: int) -> list[Scenario]:

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ...core.closed_loop import ClosedLoopRun, run_closed_loop
-from ...core.controller import SOLVED, NmpcController
+from ...core.controller import NmpcController
 from ...core.errors import NmpcError
 from ...core.fallback import CANDIDATES as FALLBACK_CANDIDATES
 from ...core.metrics import (
@@ -51,6 +51,7 @@ from ...core.metrics import (
     time_stats,
 )
 from ...core.models import Model
+from ...core.nlp import SOLVED
 from ...core.regions import Region
 from ...core.settings import ControllerSettings
 from ...core.status import StepStatus
