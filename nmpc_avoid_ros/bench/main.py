@@ -7,6 +7,9 @@ burst of load on the shared machine hits every variant alike. Building a variant
 - `paper/<mu>/<plant>`: the paper's example, x0 = [-5, 0], y_t = 5, 50 samples, the shipped
   config with no obstacle slots (the paper's problem exactly: the two keep-in regions).
 - `vdp_4_ellipses`: the paper's run (N = 5) among 4 ellipses, one across the steady states on the way.
+- `shipped/vdp_4_ellipses`, `shipped/robot_4_ellipses`: the same van der Pol run, and the mobile
+  robot among 4 ellipses, with the shipped configs exactly as they are (region capacity, tiers):
+  what a user of each solver path gets.
 - `scaling/N=<N>`: the mobile robot (config/mobile_robot.yaml) among 4 ellipses, N = 5..100.
 - `moving_obstacle`: the mobile robot at N = 20 while an ellipse moves every sample (the
   obstacle set changes every sample; no variant may rebuild).
@@ -125,6 +128,16 @@ def vdp_ellipse_scenario(steps: int) -> Scenario:
     s = with_capacity(ControllerSettings.from_params(_config("van_der_pol.yaml")), 4)
     return Scenario("vdp_4_ellipses", s, make_model(s.model), np.array([-5.0, 0.0]), np.array([5.0]), steps,
                     "euler", lambda k: VDP_ELLIPSES if k == 0 else None)
+
+
+def shipped_scenarios(steps: int) -> list[Scenario]:
+    """The shipped configs as they are (their region capacities and ellipse tiers) among 4 ellipses."""
+    vdp = ControllerSettings.from_params(_config("van_der_pol.yaml"))
+    robot = ControllerSettings.from_params(_config("mobile_robot.yaml"))
+    return [Scenario("shipped/vdp_4_ellipses", vdp, make_model(vdp.model), np.array([-5.0, 0.0]), np.array([5.0]),
+                     steps, "euler", lambda k: VDP_ELLIPSES if k == 0 else None),
+            Scenario("shipped/robot_4_ellipses", robot, make_model(robot.model), np.array([-8.0, -6.0, 0.0, 0.0]),
+                     np.array([8.0, 6.0]), steps, "continuous", lambda k: ROBOT_ELLIPSES if k == 0 else None)]
 
 
 def robot_settings(horizon: int) -> ControllerSettings:
@@ -288,11 +301,12 @@ def main(argv: list[str] | None = None) -> int:
         print(line, file=sys.stderr, flush=True)
 
     if args.quick:
-        scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *scaling_scenarios((5, 20, 50), 6),
-                     moving_obstacle_scenario(10), crossing_walker_scenario(40)]
+        scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *shipped_scenarios(20),
+                     *scaling_scenarios((5, 20, 50), 6), moving_obstacle_scenario(10), crossing_walker_scenario(40)]
     else:
-        scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *scaling_scenarios((5, 10, 20, 50, 100), 40),
-                     moving_obstacle_scenario(60), crossing_walker_scenario(80)]
+        scenarios = [*paper_scenarios(50), vdp_ellipse_scenario(50), *shipped_scenarios(50),
+                     *scaling_scenarios((5, 10, 20, 50, 100), 40), moving_obstacle_scenario(60),
+                     crossing_walker_scenario(80)]
     if args.scenarios:
         prefixes = tuple(args.scenarios.split(","))
         scenarios = [sc for sc in scenarios if sc.name.startswith(prefixes)]

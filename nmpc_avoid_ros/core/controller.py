@@ -243,7 +243,7 @@ class NmpcController:
         if self.passage.active:
             pass
         elif penetrating or self._escape_due(best, previous_y_a, y_t, par):
-            best, tried, spent = self._escape(x, y_t, par, best, s.max_solve_time - solve_time, penetrating)
+            best, tried, spent = self._escape(x, y_t, par, best, s.max_solve_time - solve_time, penetrating, time)
             solve_time += spent
             escape = f"{best.label}; tried: " + "; ".join(tried)
         elif self.passage.due:
@@ -326,7 +326,7 @@ class NmpcController:
         return self.escape.should_try(y_a, previous_y_a, y_t, par)
 
     def _escape(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution, time_left: float,
-                penetrating: bool = False) -> tuple[Solution, list[str], float]:
+                penetrating: bool = False, time: float | None = None) -> tuple[Solution, list[str], float]:
         """The lowest-cost plan among the base and the escape guesses (for a `penetrating` base: a
         clear plan first, see candidates.lowest_cost)."""
         # FATROP solves the guesses itself (measured on a 4-ellipse van der Pol scene: the same plans,
@@ -343,8 +343,12 @@ class NmpcController:
         # a penetrating plan is a safety matter: all its guesses now; a stall's may take several samples
         batch, rest = (guesses, 0) if penetrating else guess_batch(guesses, self._escape_next,
                                                                     self.settings.escape_guesses_per_sample)
-        best, tried, spent = lowest_cost(nlp, x, par, base, batch, time_left, self.settings.feasibility_tolerance,
-                                         VIOLATION_TOLERANCE)
+        tier = self.tiers.pick(self._regions) if nlp is self.nlp else None  # an ellipse tier solves them faster
+        guess_par = par if tier is None else self.tiers.parameters(par, self.slot_values(time, tier))
+        best, tried, spent = lowest_cost(tier or nlp, x, guess_par, base, batch, time_left,
+                                         self.settings.feasibility_tolerance, VIOLATION_TOLERANCE)
+        if tier is not None and best is not base:
+            best = self.tiers.regular_solution(best, x, par)
         self._escape_next = 0
         if best is base and rest:  # the next batch on the next sample (still stalled: the base held)
             self._escape_next = len(guesses) - rest

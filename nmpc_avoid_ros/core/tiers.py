@@ -15,8 +15,9 @@ full parameter vector, so everything after the solve (escape, fallback, certific
 start) sees the regular NLP. The tiers' parameter vectors are the regular one with the shorter
 slot block: the problem is the same, only the empty slots are missing.
 
-Not used: for a cold start (the reference solves it), in the passage mode (its own NLP), or after a
-budget-cut sample (its iterate is continued by the regular NLP).
+The escape guesses (core/candidates.py) are solved on the tier too, the plan kept written back
+the same way. Not used: for a cold start (the reference solves it), in the passage mode (its own
+NLP), or after a budget-cut sample (its iterate is continued by the regular NLP).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from .candidates import Solution
 from .models import Model
 from .nlp import NlpBase
 from .regions import Ellipse, Region
@@ -54,22 +56,33 @@ class Tiers:
             return None
         return next((nlp for k, nlp in self.nlps if len(regions) <= k), None)
 
+    def parameters(self, par: np.ndarray, slots: np.ndarray) -> np.ndarray:
+        """A tier's parameter vector: the regular `par` with its slot block replaced by the tier's `slots`."""
+        return np.concatenate([par[:self._prefix], slots])
+
+    def to_regular(self, tier: NlpBase, w: np.ndarray, x: np.ndarray, par: np.ndarray) -> np.ndarray:
+        """A tier's solution w in the regular NLP's layout, its slacks filled at the regular `par`."""
+        U, X, y_a, rest = tier.layout.split_w(w)
+        return self.regular.fill_slacks(self.regular.layout.join_w(U, X, y_a, rest, x0=x), par)
+
     def solve(self, tier: NlpBase, w0: np.ndarray, x: np.ndarray, par: np.ndarray, slots: np.ndarray,
               settings: ControllerSettings) -> Attempt:
-        """Solve `tier` from w0 [its n_w] with the regular parameter vector `par` whose slot block is
-        replaced by the tier's `slots`; the outcome as an Attempt of the regular NLP: w in its layout
-        (slacks filled at `par`), multipliers zero (no solver path here warm-starts them)."""
-        tier_par = np.concatenate([par[:self._prefix], slots])
+        """Solve `tier` from w0 [its n_w] with its parameters (`parameters`); the outcome as an Attempt
+        of the regular NLP: w in its layout, multipliers zero (no solver path here warm-starts them)."""
+        tier_par = self.parameters(par, slots)
         result = attempt(tier, tier.fill_slacks(w0, tier_par), tier_par, np.zeros(tier.layout.n_w),
                          np.zeros(tier.lbg.size), settings.max_iterations, settings.feasibility_tolerance)
         regular = self.regular
-        if result.finite:
-            U, X, y_a, rest = tier.layout.split_w(result.w)
-            result.w = regular.fill_slacks(regular.layout.join_w(U, X, y_a, rest, x0=x), par)
-        else:
-            result.w = np.full(regular.layout.n_w, np.nan)
+        result.w = self.to_regular(tier, result.w, x, par) if result.finite else np.full(regular.layout.n_w, np.nan)
         result.lam_x, result.lam_g, result.nlp = np.zeros(regular.layout.n_w), np.zeros(regular.lbg.size), regular
         return result
+
+    def regular_solution(self, solution: Solution, x: np.ndarray, par: np.ndarray) -> Solution:
+        """An escape candidate solved on a tier as a Solution of the regular NLP (multipliers zero)."""
+        regular = self.regular
+        return Solution(self.to_regular(solution.nlp, solution.w, x, par), np.zeros(regular.layout.n_w),
+                        np.zeros(regular.lbg.size), regular, solution.solved, solution.cost, solution.depth,
+                        solution.label)
 
 
 def _parameter_count(nlp: NlpBase) -> int:
