@@ -200,3 +200,23 @@ def test_sweep_runs_the_same_scenarios_per_value(tmp_path):
     assert (tmp_path / "sweep.png").stat().st_size > 5000
     assert main(args) == 0  # resumes: nothing to run again
     assert {v: read_jsonl(tmp_path / f"mu={v}" / JSONL_NAME) for v in runs} == runs
+
+
+def test_set_changes_any_setting_of_every_family_and_a_resume_must_repeat_it(tmp_path, capsys):
+    """`--set` reaches every family's controller, structural settings too (the reference path by name)."""
+    args = ["--out", str(tmp_path), "--vdp", "2", "--robot", "1", "--seed", SEED, "--vdp-steps", "20",
+            "--robot-steps", "10", "--max-solve-time", "30", "--no-progress", "--no-plots", "--jobs", "1"]
+    reference = ["--set", 'solver="ipopt"', "--set", "ellipse_tiers=[]", "--set", "mu=0"]
+    assert main([*args, *reference]) == 0
+    records = read_jsonl(tmp_path / JSONL_NAME)
+    assert sorted(records) == ["robot-0000", "vdp-0000", "vdp-0001"]
+    assert all(r["final_avoidance_cost"] == 0.0 for r in records.values())  # mu = 0 took effect in both families
+    meta = json.loads((tmp_path / "campaign_meta.json").read_text())
+    assert meta["set"] == {"solver": "ipopt", "ellipse_tiers": [], "mu": 0}
+    capsys.readouterr()
+    assert main(args) == 2  # the same directory without the same --set: another campaign
+    for bad, why in ((["--set", "nope=1"], "not a controller setting"), (["--set", 'solver="nope"'], "solver"),
+                     (["--set", "mu=fast"], "not a JSON value"), (["--set", "mu=1", "--set", "mu=2"], "given twice")):
+        assert main([*args[:1], str(tmp_path / "other"), *args[2:], *bad]) == 2
+        error = capsys.readouterr().err.strip()
+        assert error.startswith("campaign: error: ") and why in error, error

@@ -48,7 +48,7 @@ from .running import (
 )
 from .scenarios import FAMILIES, families, interleave, make_specs, settings_from_params
 from .summary import format_summary
-from .sweep import parse_sweep, sweep_dir, write_sweep
+from .sweep import parse_settings, parse_sweep, sweep_dir, write_sweep
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--connect-timeout", type=float, default=10.0,
                     help="seconds to wait for the scheduler to answer (default 10)")
     ap.add_argument("--sweep", help="NAME=V1,V2,...: the same scenarios once per value of a run-time setting")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="change a controller setting in every family's config (repeatable; JSON values; "
+                         "structural ones too, e.g. the reference path: --set 'solver=\"ipopt\"')")
     ap.add_argument("--plant", choices=PLANTS, default="euler",
                     help="euler: the prediction model (the paper's nominal setting, default); continuous: ZOH+DOP853")
     ap.add_argument("--max-solve-time", type=float,
@@ -92,14 +95,16 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     try:
         fams = families({f.key: getattr(args, f"{f.key}_config") for f in FAMILIES}, steps)
-        params = {key: load_params_file(fam.config).section("controller") for key, fam in fams.items()}
+        changes = parse_settings(args.set)
+        params = {key: {**load_params_file(fam.config).section("controller"), **changes} for key, fam in fams.items()}
         base = {key: settings_from_params(p, args.max_solve_time) for key, p in params.items()}
         groups = [make_specs(fam, counts[key], args.seed, base[key], args.plant) for key, fam in fams.items()]
         sweep = parse_sweep(args.sweep, base) if args.sweep else None
         meta = {"seed": args.seed, "plant": args.plant, "max_solve_time": args.max_solve_time,
                 # an opt-in family (default count 0) only when asked for: older campaigns' meta stays as it was
                 "configs": {f.key: str(f.config) for f in fams.values() if counts[f.key] or f.default_count},
-                "steps": {f.key: f.steps for f in fams.values() if counts[f.key] or f.default_count}}
+                "steps": {f.key: f.steps for f in fams.values() if counts[f.key] or f.default_count},
+                **({"set": changes} if changes else {})}
         runs = ([(args.out, {}, meta)] if sweep is None else
                 [(sweep_dir(args.out, sweep.name, v), {sweep.name: v}, {**meta, "sweep": {sweep.name: v}})
                  for v in sweep.values])

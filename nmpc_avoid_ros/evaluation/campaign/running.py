@@ -129,7 +129,9 @@ def check_meta(out: Path, meta: dict[str, Any]) -> None:
             old = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError):
             raise CampaignFileError(f"{path} is not JSON; move it away to resume") from None
-        diff = sorted(k for k in meta if not isinstance(old, dict) or old.get(k) != meta[k])
+        # `set` is written only when given (older campaigns' meta stays as it was), so its absence counts too
+        keys = set(meta) | ({"set"} & set(old) if isinstance(old, dict) else set())
+        diff = sorted(k for k in keys if not isinstance(old, dict) or old.get(k) != meta.get(k))
         if diff:
             raise ConfigError(f"{out} holds a campaign with other {', '.join(diff)} "
                               f"({', '.join(f'{k}={old.get(k)!r}' for k in diff) if isinstance(old, dict) else old});"

@@ -72,6 +72,27 @@ def parse_sweep(text: str, settings: Mapping[str, ControllerSettings]) -> Sweep:
     return Sweep(name, tuple(values))
 
 
+def parse_settings(texts: Sequence[str]) -> dict[str, Any]:
+    """`--set NAME=VALUE` items (JSON values; any controller setting, structural ones included) -> a
+    mapping; ConfigError for a malformed item, an unknown name or a name given twice. The values are
+    checked where the params files are read (`settings_from_params`)."""
+    out: dict[str, Any] = {}
+    for text in texts:
+        match = re.fullmatch(r"\s*([A-Za-z_]\w*)\s*=(.+)", text)
+        if not match:
+            raise ConfigError(f"--set {text!r}: expected NAME=VALUE")
+        name, raw = match.group(1), match.group(2).strip()
+        if name not in ControllerSettings.__dataclass_fields__:
+            raise ConfigError(f"--set {name}: not a controller setting")
+        if name in out:
+            raise ConfigError(f"--set {name}: given twice")
+        try:
+            out[name] = json.loads(raw)
+        except json.JSONDecodeError:
+            raise ConfigError(f"--set {name}: {raw!r} is not a JSON value (strings in double quotes)") from None
+    return out
+
+
 def sweep_dir(out: Path, name: str, value: Any) -> Path:
     """<out>/<NAME>=<V> with V as compact JSON (brackets and commas kept; spaces dropped)."""
     return out / f"{name}={json.dumps(value, separators=(',', ':'))}"
