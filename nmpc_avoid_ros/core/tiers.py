@@ -68,7 +68,8 @@ class Tiers:
     def solve(self, tier: NlpBase, w0: np.ndarray, x: np.ndarray, par: np.ndarray, slots: np.ndarray,
               settings: ControllerSettings) -> Attempt:
         """Solve `tier` from w0 [its n_w] with its parameters (`parameters`); the outcome as an Attempt
-        of the regular NLP: w in its layout, multipliers zero (no solver path here warm-starts them)."""
+        of the regular NLP: w in its layout, multipliers zero (FATROP and IPOPT as configured here do not
+        read initial multipliers; the SQP paths start their QPs cold on a tier)."""
         tier_par = self.parameters(par, slots)
         result = attempt(tier, tier.fill_slacks(w0, tier_par), tier_par, np.zeros(tier.layout.n_w),
                          np.zeros(tier.lbg.size), settings.max_iterations, settings.feasibility_tolerance)
