@@ -24,9 +24,10 @@ import casadi as ca
 import numpy as np
 
 from .models import Model
-from .nlp import SOLVED, Buffered, NlpBase
+from .nlp import Buffered, NlpBase
 from .regions import Region
 from .settings import ControllerSettings
+from .step_result import attempt
 
 #: points on the steady-state segment from y_a to the target where blocking is checked
 SEGMENT_POINTS = 96
@@ -333,11 +334,10 @@ def solve_guess(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess, feas
     layout = nlp.layout
     rest = None if layout.closed_form else np.concatenate([guess.states[-1], guess.inputs[-1]])
     w0 = nlp.fill_slacks(layout.join_w(guess.inputs, guess.states, guess.y_a, rest, x0=x), par)
-    w, lam_x, lam_g, stats, seconds = nlp.solve(w0, par, np.zeros(layout.n_w), np.zeros(nlp.lbg.size))
-    status = str(stats.get("return_status", "unknown"))
-    solved = status in SOLVED
-    if not (np.all(np.isfinite(w)) and (solved or nlp.violation(w, par) <= feasibility_tolerance)):
-        return None, f"{guess.label}: unusable ({status})", seconds
-    cost, depth = plan_cost(nlp, w, par), nlp.max_depth(w, par)
-    return (Solution(w, lam_x, lam_g, nlp, solved, cost, depth, guess.label),
-            f"{guess.label}: cost {cost:.6g}, depth {depth:.2g}", seconds)
+    result = attempt(nlp, w0, par, np.zeros(layout.n_w), np.zeros(nlp.lbg.size), nlp.settings.max_iterations,
+                     feasibility_tolerance)
+    if not result.usable:
+        return None, f"{guess.label}: unusable ({result.solver_status})", result.solve_time
+    cost, depth = plan_cost(nlp, result.w, par), nlp.max_depth(result.w, par)
+    return (Solution(result.w, result.lam_x, result.lam_g, nlp, result.solved, cost, depth, guess.label),
+            f"{guess.label}: cost {cost:.6g}, depth {depth:.2g}", result.solve_time)

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from ...core.errors import ConfigError
-from ...core.settings import RUNTIME_FIELDS, ControllerSettings
+from ...core.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
 
 #: summary keys compared across the values (table rows and figure panels)
 SWEEP_KEYS = ("share_converged", "share_near", "share_near_admissible", "stop_short", "max_penetration",
@@ -46,12 +46,18 @@ def _split(text: str) -> list[str]:
     return [p.strip() for p in parts]
 
 
-def parse_sweep(text: str, settings: Mapping[str, ControllerSettings]) -> Sweep:
-    """NAME=V1,V2,... (JSON values) checked against every family's settings; ConfigError if not valid."""
+def _assignment(option: str, text: str, form: str) -> tuple[str, str]:
+    """'NAME=REST' -> (NAME, REST); ConfigError naming the option and the expected `form` if not."""
     match = re.fullmatch(r"\s*([A-Za-z_]\w*)\s*=(.+)", text)
     if not match:
-        raise ConfigError(f"--sweep {text!r}: expected NAME=V1,V2,...")
-    name, raw = match.group(1), _split(match.group(2))
+        raise ConfigError(f"{option} {text!r}: expected {form}")
+    return match.group(1), match.group(2).strip()
+
+
+def parse_sweep(text: str, settings: Mapping[str, ControllerSettings]) -> Sweep:
+    """NAME=V1,V2,... (JSON values) checked against every family's settings; ConfigError if not valid."""
+    name, rest = _assignment("--sweep", text, "NAME=V1,V2,...")
+    raw = _split(rest)
     if name not in RUNTIME_FIELDS:
         raise ConfigError(f"--sweep {name}: not a run-time setting (changing it rebuilds the NLP); "
                           f"run-time settings: {', '.join(sorted(RUNTIME_FIELDS))}")
@@ -78,11 +84,8 @@ def parse_settings(texts: Sequence[str]) -> dict[str, Any]:
     checked where the params files are read (`settings_from_params`)."""
     out: dict[str, Any] = {}
     for text in texts:
-        match = re.fullmatch(r"\s*([A-Za-z_]\w*)\s*=(.+)", text)
-        if not match:
-            raise ConfigError(f"--set {text!r}: expected NAME=VALUE")
-        name, raw = match.group(1), match.group(2).strip()
-        if name not in ControllerSettings.__dataclass_fields__:
+        name, raw = _assignment("--set", text, "NAME=VALUE")
+        if name not in SETTINGS:
             raise ConfigError(f"--set {name}: not a controller setting")
         if name in out:
             raise ConfigError(f"--set {name}: given twice")
