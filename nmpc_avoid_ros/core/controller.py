@@ -29,6 +29,7 @@ from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
 from .status import StepStatus
 from .step_result import Attempt, Plan, StepResult, attempt, validate_vector
 from .tiers import Tiers
+from .warm_start import initial_guess
 
 #: samples without a new escape attempt after one that found no better plan (the scene is static)
 ESCAPE_RETRY_SAMPLES = 10
@@ -88,6 +89,7 @@ class NmpcController:
         # with escape_guesses_per_sample: the index of the next escape guess to solve (its batch)
         self._escape_next = 0
         self._overrides = 0  # consecutive samples whose avoidable plan penetration was overridden
+        self._start_report: list[str] = []  # a cold start's guesses on a tier, this sample (for `escape`)
         # the passage mode's NLP: the same problem with the longer horizon, built here once
         long_nlp = None
         if self.settings.escape_horizon:
@@ -220,7 +222,9 @@ class NmpcController:
             # the long plan reaches its x_a within N samples (at rest beyond the region at the latest):
             # its first N stages are a plan of the regular NLP, which takes over
             self._plan, self._pending, escape = self.passage.hand_back(self._plan, self.nlp), None, "passage ended"
+        self._start_report = []
         attempt = self._solve(x, y_t, par, time)
+        escape = "; ".join(self._start_report) or escape
         if not attempt.usable:
             self._pending = (attempt.w, attempt.lam_x, attempt.lam_g) if (
                 attempt.finite and attempt.budget_cut and attempt.nlp is self.active_nlp) else None
@@ -297,6 +301,13 @@ class NmpcController:
         if tier is not None:  # the regular NLP with fewer (empty) slots; the plan comes back in its layout
             return self.tiers.solve(tier, self._initial_guess(x, y_t, tier)[0], x, par,
                                     self.slot_values(time, tier), s)
+        elapsed = 0.0
+        tier = self.tiers.pick(self._regions) if cold and self._plan is None and self.escape.available else None
+        if tier is not None:  # no plan yet: the fast path on the tier from two guesses (Tiers.cold_start)
+            result, self._start_report, elapsed = self.tiers.cold_start(
+                tier, self.escape.cold_guesses(x, y_t), x, par, self.slot_values(time, tier), s, VIOLATION_TOLERANCE)
+            if result is not None:
+                return result
         # SQP paths try a cold start themselves first (cheap, and it works on small problems);
         # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
         if not cold:
@@ -307,7 +318,6 @@ class NmpcController:
             nlps = [self.cold_nlp]
         # a cold start runs with the cold-start budget (StagewiseNlp.cold_solver, the reference's build)
         budget = max(s.max_iterations, COLD_START_ITERATIONS) if cold else s.max_iterations
-        elapsed = 0.0
         for nlp in nlps:
             w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
             result = attempt(nlp, nlp.fill_slacks(w0, par), par, lam_x0, lam_g0, budget, s.feasibility_tolerance, cold)
@@ -403,50 +413,10 @@ class NmpcController:
         return self._plan
 
     def _initial_guess(self, x: np.ndarray, y_t: np.ndarray, nlp: NlpBase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Shifted previous plan (u(1..N-1), u_a; x(2..N), x_a), else a straight line to y_t.
-
-        After a budget-cut sample whose iterate could not be applied, that iterate (shifted by
-        one sample) is the guess: the optimisation goes on where the budget stopped it.
-        """
-        layout = nlp.layout
-        N = layout.horizon
-        if self._pending is not None:
-            w, lam_x, lam_g = self._pending
-            U, X, y_a, rest = layout.split_w(w)
-            x_a, u_a = (v.copy() for v in nlp.steady(w))
-            U = np.vstack([U[1:], u_a])
-            X = np.vstack([X[1:], x_a])
-            lam_x, lam_g = nlp.shift_duals(lam_x, lam_g, 1)
-            return layout.join_w(U, X, y_a, rest, x0=x), lam_x, lam_g
-        plan = self._plan
-        if plan is None:
-            y_a = np.asarray(y_t, float)
-            x_a, u_a = self._steady_of(y_a, x)
-            x_a = np.clip(x_a, self.settings.state_min, self.settings.state_max)
-            u_a = np.clip(u_a, self._input_lo, self._input_hi)
-            ramp = np.linspace(0, 1, N + 1)[1:, None]
-            X = (1 - ramp) * x + ramp * x_a
-            U = np.tile(u_a, (N, 1))
-            rest = None if layout.closed_form else np.concatenate([x_a, u_a])
-            return layout.join_w(U, X, y_a, rest, x0=x), np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
-        shift = plan.age + 1
-        U = np.vstack([plan.inputs[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
-        X = np.vstack([plan.states[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])
-        rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
-        w0 = layout.join_w(U, X, plan.y_a, rest, x0=x)
-        if nlp is not self.active_nlp:  # a re-seed by the reference: the plan's multipliers are the fast path's
-            return w0, np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
-        lam_x, lam_g = nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
-        return w0, lam_x, lam_g
-
-    def _steady_of(self, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A steady state of output y (closed form, else the model's guess near x, else zeros)."""
-        if self.model.steady_state is not None:
-            x_s, u_s = self.model.steady_state(y)
-            return np.asarray(x_s, float).ravel(), np.asarray(u_s, float).ravel()
-        if self.model.steady_guess is not None:
-            return self.model.steady_guess(np.asarray(y, float), np.asarray(x, float))
-        return np.zeros(self.model.n), np.zeros(self.model.m)
+        """The guess (w, lam_x, lam_g) for `nlp` at state x and target y_t (core/warm_start.py); the
+        plan's multipliers only where `nlp` is the one that made it."""
+        return initial_guess(nlp, x, y_t, self._plan, self._pending, self.settings, self.model,
+                             keep_duals=nlp is self.active_nlp)
 
     def set_safe_input(self, u: Sequence[float]) -> None:
         """The model's safe input [m], one of the fallback's candidates (InputError if malformed or

@@ -86,6 +86,10 @@ class Attempt:
     finite: bool
 
 
+#: solver status of an attempt whose guess or parameters were not finite (no solver was called)
+NON_FINITE_GUESS = "non_finite_guess"
+
+
 def attempt(nlp: NlpBase, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, budget: int,
             feasibility_tolerance: float, cold: bool = False) -> Attempt:
     """One solver call of `nlp` from the guess w0 [n_w] (slacks filled) and what it gave.
@@ -94,6 +98,9 @@ def attempt(nlp: NlpBase, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, l
     unconverged iterate (budget cut, or a stalled line search) is usable when it is feasible: the
     paper's recursive feasibility needs feasibility, not optimality.
     """
+    if not (np.all(np.isfinite(w0)) and np.all(np.isfinite(par))):
+        # never handed to a solver: FATROP loops without end on a NaN guess (measured)
+        return Attempt(w0, lam_x0, lam_g0, nlp, NON_FINITE_GUESS, 0, 0.0, False, False, False, False)
     w, lam_x, lam_g, stats, solve_time = nlp.solve(w0, par, lam_x0, lam_g0, cold=cold)
     solver_status = str(stats.get("return_status", "unknown"))
     iterations = int(stats.get("iter_count", -1))

@@ -22,15 +22,17 @@ NLP), or after a budget-cut sample (its iterate is continued by the regular NLP)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .candidates import Solution
+from .candidates import Guess, Solution, guess_w, plan_cost
 from .models import Model
 from .nlp import NlpBase
 from .regions import Ellipse, Region
 from .settings import ControllerSettings
+from .stagewise import COLD_START_ITERATIONS
 from .step_result import Attempt, attempt
 
 
@@ -73,8 +75,43 @@ class Tiers:
         tier_par = self.parameters(par, slots)
         result = attempt(tier, tier.fill_slacks(w0, tier_par), tier_par, np.zeros(tier.layout.n_w),
                          np.zeros(tier.lbg.size), settings.max_iterations, settings.feasibility_tolerance)
+        return self._as_regular(result, x, par)
+
+    def cold_start(self, tier: NlpBase, guesses: Sequence[Guess], x: np.ndarray, par: np.ndarray, slots: np.ndarray,
+                   settings: ControllerSettings, clear_depth: float) -> tuple[Attempt | None, list[str], float]:
+        """A start without a plan, solved on `tier` from each guess (candidates.EscapeGuesses.cold_guesses).
+
+        Returns the lowest-cost usable plan, one that predicts no penetration beyond `clear_depth` first
+        (as candidates.lowest_cost), as an Attempt of the regular NLP whose solve_time counts every
+        solve, or None when no guess gave a usable plan (the reference solves the start then); one
+        report line per guess; the seconds all solves took.
+        """
+        tier_par = self.parameters(par, slots)
+        best, best_rank, spent, report = None, (True, math.inf), 0.0, []
+        for guess in guesses:
+            result = attempt(tier, guess_w(tier, x, tier_par, guess), tier_par, np.zeros(tier.layout.n_w),
+                             np.zeros(tier.lbg.size), max(settings.max_iterations, COLD_START_ITERATIONS),
+                             settings.feasibility_tolerance, cold=True)
+            spent += result.solve_time
+            if not result.usable:
+                report.append(f"{guess.label}: unusable ({result.solver_status})")
+                continue
+            cost, depth = plan_cost(tier, result.w, tier_par), tier.max_depth(result.w, tier_par)
+            report.append(f"{guess.label}: cost {cost:.6g}, depth {depth:.2g}")
+            rank = (depth > clear_depth, cost)
+            if best is None or rank < best_rank:
+                best, best_rank, label = result, rank, guess.label
+        if best is None:
+            return None, report, spent
+        best = self._as_regular(best, x, par)
+        best.solve_time = spent
+        return best, [f"cold start: {label}"] + report, spent
+
+    def _as_regular(self, result: Attempt, x: np.ndarray, par: np.ndarray) -> Attempt:
+        """A tier's Attempt as one of the regular NLP: w in its layout, multipliers zero."""
         regular = self.regular
-        result.w = self.to_regular(tier, result.w, x, par) if result.finite else np.full(regular.layout.n_w, np.nan)
+        result.w = self.to_regular(result.nlp, result.w, x, par) if result.finite else \
+            np.full(regular.layout.n_w, np.nan)
         result.lam_x, result.lam_g, result.nlp = np.zeros(regular.layout.n_w), np.zeros(regular.lbg.size), regular
         return result
 

@@ -1,0 +1,158 @@
+"""The real-time path's start without a plan (Tiers.cold_start): FATROP on the ellipse tier from two
+guesses, the straight line and a plan resting at the plant's output, the lower cost kept; the IPOPT
+reference only when neither gives a usable plan, or when the regions fit no tier.
+
+The scenes come from the campaign (docs/campaign, seed 0).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import PAPER_TARGET, PAPER_X0
+
+from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
+from nmpc_avoid_ros.core.candidates import Guess, plan_cost
+from nmpc_avoid_ros.core.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.regions import Ellipse, Polygon
+from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.step_result import attempt
+from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings
+
+#: campaign robot-0007: FATROP from the straight line used its 200 iterations in vain; the resting
+#: plan converged to a lower cost (3866) than the IPOPT reference's start (4027)
+ROBOT_0007 = {"x0": [4.166658085294912, 5.416388215345936, -0.4597393054455586, -0.2620438710245561],
+              "target": [-4.652227218759113, -1.2363151806669066],
+              "ellipses": [((-2.7621142084645403, 0.8406494381312491), (1.8600385052277928, 1.2785343973881242),
+                            0.043101730749062754),
+                           ((-7.909943408018712, 6.659081376521881), (1.4728686681371772, 1.3759231644437393),
+                            1.9679499836273568),
+                           ((1.4714907670348543, 3.4454530502999394), (0.46820869050014285, 1.2750675746013633),
+                            0.1923260364021711)]}
+
+#: campaign vdp-0336: the way to y* = 5.94 squeezes between an ellipse and |x1 x2| <= 2; the plans of
+#: samples 3-5 balanced the two penalties at a keep-in depth of 1.1e-3 (over the 1e-3 goal) while an
+#: input that stays clear existed
+VDP_0336 = {"x0": [-0.2872201751467456, 0.8679714473761755], "target": [6.423580686312276],
+            "ellipses": [((-3.9650493660771944, 1.6610760363401988), (0.7686199368423292, 0.5067914802599702),
+                          2.070737325807088),
+                         ((5.6070127987219225, 1.1657827733915942), (0.32317290776034385, 0.49476993356807397),
+                          2.986316705941074),
+                         ((2.0492698542836614, 0.41234760783442903), (1.2007945327049476, 0.41207297976398727),
+                          1.3176781216781326),
+                         ((-5.7055384875218635, 0.016996855797593913), (0.7495303065538432, 0.41306719171243633),
+                          2.9738228750929756)]}
+
+
+def shipped(family: str, **changes) -> ControllerSettings:
+    """A family's shipped config (the real-time path) with a 2 s budget: a loaded test machine must
+    not cut the solves whose outcome is asserted."""
+    return load_settings(families()[family].config).replace(max_solve_time=2.0, **changes)
+
+
+def ellipses(scene: dict, frame: str) -> list[Ellipse]:
+    return [Ellipse(c, a, yaw, frame) for c, a, yaw in scene["ellipses"]]
+
+
+def counting(controller: NmpcController) -> dict[str, int]:
+    """Count the solver calls of the IPOPT reference and of each tier (by its ellipse capacity)."""
+    calls = {}
+    for name, nlp in [("reference", controller.cold_nlp)] + [(f"tier{k}", nlp) for k, nlp in controller.tiers.nlps]:
+        calls[name] = 0
+        original = nlp.solve
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] += 1
+            return _original(*args, **kwargs)
+
+        nlp.solve = counted
+    return calls
+
+
+def reference_start_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndarray) -> float:
+    """The cost of the IPOPT reference's plan from the straight line (what the start was before)."""
+    nlp = controller.cold_nlp
+    par = controller.parameters(x, y_t, 0.0)
+    w0, lam_x, lam_g = controller._initial_guess(x, y_t, nlp)
+    result = attempt(nlp, nlp.fill_slacks(w0, par), par, lam_x, lam_g, 200, 1e-6, cold=True)
+    assert result.solved
+    return plan_cost(nlp, result.w, par)
+
+
+def test_a_start_among_ellipses_is_solved_on_the_tier_from_both_guesses_at_the_lower_cost():
+    controller = NmpcController(shipped("vdp"))
+    controller.set_regions(VDP_ELLIPSES)
+    calls = counting(controller)
+    x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
+    result = controller.step(x, y_t, time=0.0)
+    assert calls == {"reference": 0, "tier0": 0, "tier2": 0, "tier4": 2}, calls
+    assert result.status == "ok" and result.escape.startswith("cold start: "), result.escape
+    costs = {line.split(":")[0]: float(line.split("cost ")[1].split(",")[0])
+             for line in result.escape.split("; ")[1:]}
+    assert sorted(costs) == ["rest", "straight"]
+    par = controller.parameters(x, y_t, 0.0)
+    w = controller.nlp.layout.join_w(controller._plan.inputs, controller._plan.states[1:], controller._plan.y_a,
+                                     None, x0=x)
+    kept = plan_cost(controller.nlp, controller.nlp.fill_slacks(w, par), par)
+    assert kept == pytest.approx(min(costs.values()), rel=1e-5)
+    assert kept <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
+
+
+def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
+    controller = NmpcController(shipped("robot"))
+    controller.set_regions(ellipses(ROBOT_0007, "output"))
+    calls = counting(controller)
+    x, y_t = np.array(ROBOT_0007["x0"]), np.array(ROBOT_0007["target"])
+    result = controller.step(x, y_t, time=0.0)
+    assert calls["reference"] == 0 and calls["tier4"] == 2, calls
+    # from the straight line FATROP stops at its iteration budget deep inside a region (cost 4e7)
+    assert result.status == "ok" and result.escape.startswith("cold start: rest"), result.escape
+    straight = next(line for line in result.escape.split("; ") if line.startswith("straight:"))
+    assert "unusable" in straight or float(straight.split("depth ")[1]) > 1e-3, result.escape
+    par = controller.parameters(x, y_t, 0.0)
+    w = controller.nlp.layout.join_w(controller._plan.inputs, controller._plan.states[1:], controller._plan.y_a,
+                                     None, x0=x)
+    kept = plan_cost(controller.nlp, controller.nlp.fill_slacks(w, par), par)
+    assert kept <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
+
+
+def test_when_no_guess_is_usable_the_reference_solves_the_start():
+    controller = NmpcController(shipped("vdp"))
+    controller.set_regions(VDP_ELLIPSES)
+    calls = counting(controller)
+    horizon, n, m = controller.nlp.layout.horizon, controller.model.n, controller.model.m
+    broken = Guess("broken", np.array([math.nan]), np.full((horizon, n), math.nan), np.full((horizon, m), math.nan))
+    controller.escape.cold_guesses = lambda x, y_t: [broken, broken]
+    result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
+    assert calls["reference"] == 1 and calls["tier4"] == 0, calls  # a non-finite guess never reaches FATROP
+    assert result.status == "ok" and result.escape.count("broken: unusable (non_finite_guess)") == 2, result.escape
+    # the loop goes on from the reference's plan on the tier
+    after = controller.step(result.states[1], PAPER_TARGET, time=0.5)
+    assert after.status == "ok" and calls["reference"] == 1 and calls["tier4"] == 1, calls
+
+
+def test_regions_that_fit_no_tier_start_on_the_reference():
+    square = Polygon(((1.0, 1.2), (1.6, 1.2), (1.6, 1.8), (1.0, 1.8)))
+    controller = NmpcController(shipped("vdp"))
+    controller.set_regions(list(VDP_ELLIPSES[:2]) + [square])
+    calls = counting(controller)
+    result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
+    assert calls["reference"] == 1 and sum(v for k, v in calls.items() if k.startswith("tier")) == 0, calls
+    assert result.status == "ok" and not result.escape
+
+
+def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
+    controller = NmpcController(shipped("vdp"))
+    results = []
+    run = run_closed_loop(controller, VDP_0336["x0"], VDP_0336["target"], 30,
+                          regions=lambda k: ellipses(VDP_0336, "state") if k == 0 else None,
+                          on_step=lambda k, r: results.append(r))
+    keep_in = np.max(np.abs(run.x[1:, 0] * run.x[1:, 1])) - 2.0
+    obstacles = max(e.depth(x) for e in ellipses(VDP_0336, "state") for x in run.x[1:])
+    assert max(keep_in, obstacles) <= 1e-3, (keep_in, obstacles)
+    # the plan that predicted 1.1e-3 gave way to an input that stays clear, and the loop went on to y*
+    assert any(r.status == "fallback_recovery" and "plan predicts penetration" in r.fallback_reason for r in results)
+    assert run.x[-1, 0] > 5.0
