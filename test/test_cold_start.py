@@ -156,3 +156,12 @@ def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
     # the plan that predicted 1.1e-3 gave way to an input that stays clear, and the loop went on to y*
     assert any(r.status == "fallback_recovery" and "plan predicts penetration" in r.fallback_reason for r in results)
     assert run.x[-1, 0] > 5.0
+
+
+def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
+    controller = NmpcController(shipped("vdp").replace(max_solve_time=1e-6))
+    controller.set_regions(VDP_ELLIPSES)
+    calls = counting(controller)
+    result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
+    assert calls["tier4"] == 1 and calls["reference"] == 0, calls  # the first guess gave a usable plan
+    assert result.status == "ok" and "rest: not tried (sample budget spent)" in result.escape, result.escape

@@ -63,8 +63,9 @@ class NmpcController:
         # A cold start (no previous plan) begins from a straight line that may cross obstacles,
         # far from any solution: there the fast paths' line searches stall (measured: SQP beside
         # an ellipse; FATROP on the mobile robot for N >= 10) and a real-time budget is too small.
-        # The reference IPOPT formulation, with a cold-start budget, solves it; the fast path
-        # continues from its plan.
+        # Where an ellipse tier holds the regions, FATROP solves it on the tier from two guesses
+        # (Tiers.cold_start); otherwise, or when neither is usable, the reference IPOPT formulation
+        # with a cold-start budget solves it. The fast path continues from the plan.
         self.cold_nlp: NlpBase | None = None
         if self.settings.solver != "ipopt":
             cold = self.settings.replace(solver="ipopt", max_iterations=max(self.settings.max_iterations,

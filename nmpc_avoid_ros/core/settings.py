@@ -104,8 +104,9 @@ class ControllerSettings:
     mu: float = setting(1.0e8, "avoidance weight: V_a = mu (F(x_a) + sum_j F(x(j))); 0 disables avoidance",
                         runtime=True, low=0.0)
     max_iterations: int = setting(200, "solver iteration budget per sample, the fast paths' real-time work budget "
-                                       "(a cold start without a plan is solved by IPOPT with >= 200 iterations "
-                                       "and 10x the time budget); a solver option, fixed at construction",
+                                       "(a cold start without a plan that no ellipse tier holds is solved by IPOPT "
+                                       "with >= 200 iterations and 10x the time budget); a solver option, fixed at "
+                                       "construction",
                                   low=1, high=100000)
     max_solve_time: float = setting(2.0, "solver wall-time budget per sample, s (enforced by IPOPT; the fast paths "
                                          "are bounded by max_iterations); a solver option, fixed at construction",

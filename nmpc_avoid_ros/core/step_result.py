@@ -35,7 +35,8 @@ class StepResult:
         escape: '' unless local-minimum escape guesses were tried: which plan was kept
             ('shifted' or the guess's label; 'passage:<label>' entering the passage mode,
             core/passage.py) and one entry per guess tried; 'passage' for a sample in the passage
-            mode, 'passage ended' for the one that hands back to the regular horizon.
+            mode, 'passage ended' for the one that hands back to the regular horizon; for a start
+            solved on an ellipse tier, 'cold start: <kept guess>' and one entry per guess.
         horizon: stages of the NLP solved (or attempted) at this sample: the regular N, or
             escape_horizon in the passage mode (0: no solve, e.g. `coast`).
         fallback_reason: for a fallback, which candidate was applied and every candidate's

@@ -16,7 +16,8 @@ start) sees the regular NLP. The tiers' parameter vectors are the regular one wi
 slot block: the problem is the same, only the empty slots are missing.
 
 The escape guesses (core/candidates.py) are solved on the tier too, the plan kept written back
-the same way. Not used: for a cold start (the reference solves it), in the passage mode (its own
+the same way, and so is a start without a plan (`cold_start`: FATROP from two guesses; the
+reference solves it only if neither is usable). Not used: in the passage mode (its own
 NLP), or after a budget-cut sample (its iterate is continued by the regular NLP).
 """
 
@@ -84,11 +85,15 @@ class Tiers:
         Returns the lowest-cost usable plan, one that predicts no penetration beyond `clear_depth` first
         (as candidates.lowest_cost), as an Attempt of the regular NLP whose solve_time counts every
         solve, or None when no guess gave a usable plan (the reference solves the start then); one
-        report line per guess; the seconds all solves took.
+        report line per guess; the seconds all solves took. A guess is not started once the solves have
+        spent the sample's `max_solve_time` (FATROP cannot be stopped by the clock).
         """
         tier_par = self.parameters(par, slots)
         best, best_rank, spent, report = None, (True, math.inf), 0.0, []
         for guess in guesses:
+            if spent >= settings.max_solve_time:
+                report.append(f"{guess.label}: not tried (sample budget spent)")
+                continue
             result = attempt(tier, guess_w(tier, x, tier_par, guess), tier_par, np.zeros(tier.layout.n_w),
                              np.zeros(tier.lbg.size), max(settings.max_iterations, COLD_START_ITERATIONS),
                              settings.feasibility_tolerance, cold=True)
