@@ -1,6 +1,7 @@
-"""The real-time path's start without a plan (Tiers.cold_start): FATROP on the ellipse tier from two
-guesses, the straight line and a plan resting at the plant's output, the lower cost kept; the IPOPT
-reference only when neither gives a usable plan, or when the regions fit no tier.
+"""The real-time path's start without a plan (Tiers.cold_start): FATROP on the ellipse tier from a
+plan resting at the plant's output, then, only if that is unusable or penetrates, from the straight
+line to the target; the IPOPT reference only when neither gives a usable plan, or when the regions
+fit no tier.
 
 The scenes come from the campaign (docs/campaign, seed 0).
 """
@@ -33,9 +34,9 @@ ROBOT_0007 = {"x0": [4.166658085294912, 5.416388215345936, -0.4597393054455586, 
                            ((1.4714907670348543, 3.4454530502999394), (0.46820869050014285, 1.2750675746013633),
                             0.1923260364021711)]}
 
-#: campaign vdp-0336: the way to y* = 5.94 squeezes between an ellipse and |x1 x2| <= 2; the plans of
-#: samples 3-5 balanced the two penalties at a keep-in depth of 1.1e-3 (over the 1e-3 goal) while an
-#: input that stays clear existed
+#: campaign vdp-0336 (started from the straight line): the way to y* = 5.94 squeezes between an
+#: ellipse and |x1 x2| <= 2; the plans of samples 3-5 balanced the two penalties at a keep-in depth of
+#: 1.1e-3 (over the 1e-3 goal) while an input that stays clear existed
 VDP_0336 = {"x0": [-0.2872201751467456, 0.8679714473761755], "target": [6.423580686312276],
             "ellipses": [((-3.9650493660771944, 1.6610760363401988), (0.7686199368423292, 0.5067914802599702),
                           2.070737325807088),
@@ -72,6 +73,12 @@ def counting(controller: NmpcController) -> dict[str, int]:
     return calls
 
 
+def broken_guess(controller: NmpcController) -> Guess:
+    """A guess of NaNs (what no guess builder makes; attempt() must refuse it before the solver)."""
+    horizon, n, m = controller.nlp.layout.horizon, controller.model.n, controller.model.m
+    return Guess("broken", np.array([math.nan]), np.full((horizon, n), math.nan), np.full((horizon, m), math.nan))
+
+
 def reference_start_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndarray) -> float:
     """The cost of the IPOPT reference's plan from the straight line (what the start was before)."""
     nlp = controller.cold_nlp
@@ -82,23 +89,39 @@ def reference_start_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndar
     return plan_cost(nlp, result.w, par)
 
 
-def test_a_start_among_ellipses_is_solved_on_the_tier_from_both_guesses_at_the_lower_cost():
+def kept_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndarray) -> float:
+    """The cost of the plan the controller kept, evaluated on the regular NLP."""
+    plan, nlp = controller._plan, controller.nlp
+    par = controller.parameters(x, y_t, 0.0)
+    return plan_cost(nlp, nlp.fill_slacks(nlp.layout.join_w(plan.inputs, plan.states[1:], plan.y_a, None, x0=x),
+                                          par), par)
+
+
+def test_a_start_among_ellipses_is_solved_on_the_tier_from_the_resting_plan():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
     calls = counting(controller)
     x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
     result = controller.step(x, y_t, time=0.0)
-    assert calls == {"reference": 0, "tier0": 0, "tier2": 0, "tier4": 2}, calls
-    assert result.status == "ok" and result.escape.startswith("cold start: "), result.escape
-    costs = {line.split(":")[0]: float(line.split("cost ")[1].split(",")[0])
-             for line in result.escape.split("; ")[1:]}
-    assert sorted(costs) == ["rest", "straight"]
-    par = controller.parameters(x, y_t, 0.0)
-    w = controller.nlp.layout.join_w(controller._plan.inputs, controller._plan.states[1:], controller._plan.y_a,
-                                     None, x0=x)
-    kept = plan_cost(controller.nlp, controller.nlp.fill_slacks(w, par), par)
-    assert kept == pytest.approx(min(costs.values()), rel=1e-5)
-    assert kept <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
+    # clear of the regions: the straight line is not tried
+    assert calls == {"reference": 0, "tier0": 0, "tier2": 0, "tier4": 1}, calls
+    assert result.status == "ok" and result.escape.startswith("cold start: rest; rest: cost "), result.escape
+    reported = float(result.escape.split("cost ")[1].split(",")[0])
+    assert kept_cost(controller, x, y_t) == pytest.approx(reported, rel=1e-5)
+    assert kept_cost(controller, x, y_t) <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
+
+
+def test_the_straight_line_is_tried_when_the_resting_plan_is_unusable():
+    controller = NmpcController(shipped("vdp"))
+    controller.set_regions(VDP_ELLIPSES)
+    calls = counting(controller)
+    straight = controller.escape.cold_guesses(np.array(PAPER_X0, float), np.array(PAPER_TARGET, float))[1]
+    assert straight.label == "straight"
+    controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller), straight]
+    result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
+    assert calls["tier4"] == 1 and calls["reference"] == 0, calls  # the broken guess never reaches FATROP
+    assert result.status == "ok", result.status
+    assert result.escape.startswith("cold start: straight; broken: unusable (non_finite_guess); straight: cost ")
 
 
 def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
@@ -107,25 +130,23 @@ def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
     calls = counting(controller)
     x, y_t = np.array(ROBOT_0007["x0"]), np.array(ROBOT_0007["target"])
     result = controller.step(x, y_t, time=0.0)
-    assert calls["reference"] == 0 and calls["tier4"] == 2, calls
-    # from the straight line FATROP stops at its iteration budget deep inside a region (cost 4e7)
-    assert result.status == "ok" and result.escape.startswith("cold start: rest"), result.escape
-    straight = next(line for line in result.escape.split("; ") if line.startswith("straight:"))
-    assert "unusable" in straight or float(straight.split("depth ")[1]) > 1e-3, result.escape
-    par = controller.parameters(x, y_t, 0.0)
-    w = controller.nlp.layout.join_w(controller._plan.inputs, controller._plan.states[1:], controller._plan.y_a,
-                                     None, x0=x)
-    kept = plan_cost(controller.nlp, controller.nlp.fill_slacks(w, par), par)
-    assert kept <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
+    assert calls["reference"] == 0 and calls["tier4"] == 1, calls
+    assert result.status == "ok" and result.escape.startswith("cold start: rest; rest: cost "), result.escape
+    assert kept_cost(controller, x, y_t) <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
+    # the straight line alone: FATROP stops at its iteration budget deep inside a region (cost 4e7)
+    tier = controller.tiers.pick(controller.regions)
+    _, report, _ = controller.tiers.cold_start(tier, controller.escape.cold_guesses(x, y_t)[1:], x,
+                                               controller.parameters(x, y_t, 0.0), controller.slot_values(0.0, tier),
+                                               controller.settings, 1e-3)
+    line = report[-1]
+    assert line.startswith("straight: ") and ("unusable" in line or float(line.split("depth ")[1]) > 1e-3), report
 
 
 def test_when_no_guess_is_usable_the_reference_solves_the_start():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
     calls = counting(controller)
-    horizon, n, m = controller.nlp.layout.horizon, controller.model.n, controller.model.m
-    broken = Guess("broken", np.array([math.nan]), np.full((horizon, n), math.nan), np.full((horizon, m), math.nan))
-    controller.escape.cold_guesses = lambda x, y_t: [broken, broken]
+    controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller)] * 2
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     assert calls["reference"] == 1 and calls["tier4"] == 0, calls  # a non-finite guess never reaches FATROP
     assert result.status == "ok" and result.escape.count("broken: unusable (non_finite_guess)") == 2, result.escape
@@ -146,6 +167,9 @@ def test_regions_that_fit_no_tier_start_on_the_reference():
 
 def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
     controller = NmpcController(shipped("vdp"))
+    # the start the campaign run had: from the straight line (the resting plan takes another way)
+    guesses = controller.escape.cold_guesses
+    controller.escape.cold_guesses = lambda x, y_t: [g for g in guesses(x, y_t) if g.label == "straight"]
     results = []
     run = run_closed_loop(controller, VDP_0336["x0"], VDP_0336["target"], 30,
                           regions=lambda k: ellipses(VDP_0336, "state") if k == 0 else None,
@@ -159,9 +183,16 @@ def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
 
 
 def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
-    controller = NmpcController(shipped("vdp").replace(max_solve_time=1e-6))
+    settings = shipped("vdp").replace(max_solve_time=1e-6)
+    controller = NmpcController(settings)
     controller.set_regions(VDP_ELLIPSES)
     calls = counting(controller)
-    result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
-    assert calls["tier4"] == 1 and calls["reference"] == 0, calls  # the first guess gave a usable plan
-    assert result.status == "ok" and "rest: not tried (sample budget spent)" in result.escape, result.escape
+    x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
+    tier = controller.tiers.pick(controller.regions)
+    # clear_depth -1: every plan counts as penetrating, so the straight line would be tried next
+    result, report, spent = controller.tiers.cold_start(tier, controller.escape.cold_guesses(x, y_t), x,
+                                                        controller.parameters(x, y_t, 0.0),
+                                                        controller.slot_values(0.0, tier), settings, -1.0)
+    assert calls["tier4"] == 1, calls
+    assert report[0] == "cold start: rest" and report[-1] == "straight: not tried (sample budget spent)", report
+    assert result.usable and spent == result.solve_time > settings.max_solve_time

@@ -80,12 +80,13 @@ class Tiers:
 
     def cold_start(self, tier: NlpBase, guesses: Sequence[Guess], x: np.ndarray, par: np.ndarray, slots: np.ndarray,
                    settings: ControllerSettings, clear_depth: float) -> tuple[Attempt | None, list[str], float]:
-        """A start without a plan, solved on `tier` from each guess (candidates.EscapeGuesses.cold_guesses).
+        """A start without a plan, solved on `tier` from the guesses in turn (candidates.EscapeGuesses.cold_guesses)
+        until one gives a usable plan that predicts no penetration beyond `clear_depth`.
 
-        Returns the lowest-cost usable plan, one that predicts no penetration beyond `clear_depth` first
-        (as candidates.lowest_cost), as an Attempt of the regular NLP whose solve_time counts every
-        solve, or None when no guess gave a usable plan (the reference solves the start then); one
-        report line per guess; the seconds all solves took. A guess is not started once the solves have
+        Returns that plan, else the best of those tried (a clear one first, then the lowest cost, as
+        candidates.lowest_cost), as an Attempt of the regular NLP whose solve_time counts every solve,
+        or None when no guess gave a usable plan (the reference solves the start then); one report
+        line per guess tried; the seconds all solves took. A guess is not started once the solves have
         spent the sample's `max_solve_time` (FATROP cannot be stopped by the clock).
         """
         tier_par = self.parameters(par, slots)
@@ -106,6 +107,8 @@ class Tiers:
             rank = (depth > clear_depth, cost)
             if best is None or rank < best_rank:
                 best, best_rank, label = result, rank, guess.label
+            if depth <= clear_depth:
+                break
         if best is None:
             return None, report, spent
         best = self._as_regular(best, x, par)
