@@ -19,8 +19,10 @@ def test_bench_writes_one_record_per_variant_and_scenario(tmp_path, capsys):
     assert pairs == {(v, "paper/mu=1e+08/euler") for v in ("opti_ipopt_paper", "ours_fatrop", "ours_sqp")} | {
         (v, "moving_obstacle") for v in ("opti_ipopt_paper", "ours_fatrop")}
     for r in records:
-        assert set(r["solve_ms"]) >= {"median", "p90", "p99", "max"}
+        assert set(r["solve_ms"]) >= {"median", "p90", "p99", "max", "max_warm", "cold_start"}
         assert r["solve_ms"]["median"] <= r["solve_ms"]["p90"] <= r["solve_ms"]["p99"] <= r["solve_ms"]["max"]
+        # the worst sample is the slower of the cold start (sample 0) and the worst warm one
+        assert r["solve_ms"]["max"] == max(r["solve_ms"]["cold_start"], r["solve_ms"]["max_warm"])
         assert {"iterations", "failures", "settling_step", "final_error", "reference", "missed_samples"} <= set(r)
         # a timing figure: its value is the benchmark's to report (BENCHMARKS.md), not a unit test's to
         # assert (a loaded test machine pushes the paper reference's robot cold start past 0.25 s)

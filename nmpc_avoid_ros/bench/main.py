@@ -222,7 +222,8 @@ def record(name: str, scenario: Scenario, run: Trajectory, build_s: float) -> di
         "solve_ms": {**time_stats(times, (90, 99)),
                      # sample 0 is a cold start (no previous plan): the tail of the warm samples alone
                      "p99_warm": float(np.percentile(times[1:], 99)) if times.size > 1 else float(times[0]),
-                     "max_warm": float(np.max(times[1:])) if times.size > 1 else float(times[0])},
+                     "max_warm": float(np.max(times[1:])) if times.size > 1 else float(times[0]),
+                     "cold_start": float(times[0])},
         "iterations": {"median": float(np.median(iters)), "max": int(np.max(iters))},
         "failures": int(sum(smp.failed for smp in samples)),
         "fallbacks": int(sum(smp.fallback for smp in samples)),
@@ -366,8 +367,8 @@ def markdown(report: dict[str, Any]) -> str:
              f"Machine: {report['machine'].get('cpu', '?')}, {report['machine']['cpus']} CPUs, "
              f"Python {report['machine']['python']}, CasADi {report['machine']['casadi']}, "
              f"load average at the end {tuple(round(v, 2) for v in report['machine'].get('load_average', ()))}", ""]
-    header = ("| scenario | variant | median ms | p90 | p99 | max | p99 warm | max warm | iters med/max | fail | "
-              "fallback | cut | missed | settle (ref) | quality (ref) | final error | speed-up median / max |")
+    header = ("| scenario | variant | median ms | p90 | p99 | max | p99 warm | max warm | cold start | iters med/max | "
+              "fail | fallback | cut | missed | settle (ref) | quality (ref) | final error | speed-up median / max |")
     lines += [header, "|" + "---|" * (header.count("|") - 1)]
     for r in report["records"]:
         t = r["solve_ms"]
@@ -377,7 +378,7 @@ def markdown(report: dict[str, Any]) -> str:
         speed = r.get("speedup_vs_reference", {})
         lines.append(
             f"| {r['scenario']} | {r['variant']} | {_fmt(t['median'])} | {_fmt(t['p90'])} | {_fmt(t['p99'])} | "
-            f"{_fmt(t['max'])} | {_fmt(t.get('p99_warm'))} | {_fmt(t.get('max_warm'))} | "
+            f"{_fmt(t['max'])} | {_fmt(t.get('p99_warm'))} | {_fmt(t.get('max_warm'))} | {_fmt(t.get('cold_start'))} | "
             f"{_fmt(r['iterations']['median'])}/{r['iterations']['max']} | "
             f"{r['failures']} | {r['fallbacks']} | {r['budget_cut']} | {r['missed_samples']} | "
             f"{_fmt(r['settling_step'])} ({_fmt(ref.get('settling_step'))}) | "
