@@ -63,9 +63,10 @@ class NmpcController:
         # A cold start (no previous plan) begins from a straight line that may cross obstacles,
         # far from any solution: there the fast paths' line searches stall (measured: SQP beside
         # an ellipse; FATROP on the mobile robot for N >= 10) and a real-time budget is too small.
-        # Where an ellipse tier holds the regions, FATROP solves it on the tier from two guesses
-        # (Tiers.cold_start); otherwise, or when neither is usable, the reference IPOPT formulation
-        # with a cold-start budget solves it. The fast path continues from the plan.
+        # Where an ellipse tier holds the regions, the fast path solves it on the tier from a plan
+        # resting at the plant's output, then the straight line (Tiers.cold_start); otherwise, or
+        # when neither is usable, the reference IPOPT formulation with a cold-start budget solves it.
+        # The fast path continues from the plan.
         self.cold_nlp: NlpBase | None = None
         if self.settings.solver != "ipopt":
             cold = self.settings.replace(solver="ipopt", max_iterations=max(self.settings.max_iterations,
@@ -304,7 +305,7 @@ class NmpcController:
                                     self.slot_values(time, tier), s)
         elapsed = 0.0
         tier = self.tiers.pick(self._regions) if cold and self._plan is None and self.escape.available else None
-        if tier is not None:  # no plan yet: the fast path on the tier from two guesses (Tiers.cold_start)
+        if tier is not None:  # no plan yet: the fast path on the tier (Tiers.cold_start)
             result, self._start_report, elapsed = self.tiers.cold_start(
                 tier, self.escape.cold_guesses(x, y_t), x, par, self.slot_values(time, tier), s, VIOLATION_TOLERANCE)
             if result is not None:
