@@ -90,7 +90,7 @@ class Tiers:
         spent the sample's `max_solve_time` (FATROP cannot be stopped by the clock).
         """
         tier_par = self.parameters(par, slots)
-        best, best_rank, spent, report = None, (True, math.inf), 0.0, []
+        best, best_rank, label, spent, report = None, (True, math.inf), "", 0.0, []
         for guess in guesses:
             if spent >= settings.max_solve_time:
                 report.append(f"{guess.label}: not tried (sample budget spent)")
