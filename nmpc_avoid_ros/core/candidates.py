@@ -204,8 +204,8 @@ class EscapeGuesses:
         converged in every start, 0.8 / 4.4 ms median, at most 4.7 / 22.5 ms; the straight line
         through the regions took 1.8 / 6.1 ms median but up to 9.5 / 62 ms and failed 2 robot starts.
         The resting plan's local optimum was worse than the IPOPT reference's in 8 + 2 starts, yet the
-        closed loops were as good (campaign settling mean 21.28 / 48.76 samples against the
-        reference's 21.19 / 48.82; both guesses every time: 20.94 / 48.65 at 3x the start's time).
+        closed loops were as good (campaign settling mean 21.28 / 48.70 samples against the
+        reference's 21.19 / 49.27; both guesses every time: 20.94 / 48.59 at 3x the start's time).
         """
         s = self.settings
         x_t, u_t = (v.copy() for v in self._steady(y_t))
