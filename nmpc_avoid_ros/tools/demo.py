@@ -28,7 +28,7 @@ from ..core.metrics import SETTLING_TOLERANCE, settling_step
 from ..core.settings import default_config_path
 from ..core.status import StepStatus
 from .analyze import analyze
-from .processes import NodeProcess
+from .processes import NodeProcess, settle
 from .simulate import load_scenario, simulate
 
 RUNS = (("with_avoidance", None), ("without_avoidance", 0.0))
@@ -109,6 +109,8 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
         if not needed():
             raise NmpcError(f"the loop did not complete {steps} steps in {timeout:.0f} s "
                             f"({len(states)} states, {len(samples)} samples)")
+        if lockstep:  # the loop is quiet: the recorder takes its last messages before the nodes stop
+            settle(lambda: executor.spin_once(timeout_sec=0.05))
     finally:
         codes = [p.stop() for p in reversed(procs)]  # plant, controller, then the recorder finishes the bag
         executor.shutdown()

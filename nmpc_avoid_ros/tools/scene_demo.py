@@ -41,7 +41,7 @@ from ..core.errors import NmpcError
 from ..core.scene import Scene, load_scene
 from ..core.settings import ControllerSettings, load_params_file
 from .analyze import analyze
-from .processes import NodeProcess
+from .processes import NodeProcess, settle
 
 #: `state` subscribers before the lockstep plant publishes x0: recorder, controller, obstacles, the demo
 STATE_LISTENERS = 4
@@ -169,6 +169,8 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
         if len(samples) < needed:
             raise NmpcError(f"the scene did not complete {needed} samples in {timeout:.0f} s "
                             f"({heard['state']} states, {len(samples)} samples)")
+        if lockstep:  # the loop is quiet: the recorder takes its last messages before the nodes stop
+            settle(lambda: executor.spin_once(timeout_sec=0.05))
     finally:
         codes = [p.stop() for p in reversed(procs)]  # plant first; the recorder finishes the bag last
         executor.shutdown()
