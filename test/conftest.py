@@ -21,6 +21,24 @@ PAPER_TARGET = [5.0]
 PAPER_STEPS = 50
 
 
+def count_solves(controller: NmpcController, first: str) -> dict[str, int]:
+    """Count the solver calls of one of the controller's NLPs (`first`: "regular" or the fast path's
+    "reference") and of each ellipse tier ("tier<k>", k its capacity); the dict fills as they run."""
+    nlps = [(first, controller.nlp if first == "regular" else controller.cold_nlp)]
+    nlps += [(f"tier{k}", nlp) for k, nlp in controller.tiers.nlps]
+    calls = {}
+    for name, nlp in nlps:
+        calls[name] = 0
+        original = nlp.solve
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] += 1
+            return _original(*args, **kwargs)
+
+        nlp.solve = counted
+    return calls
+
+
 @functools.cache
 def paper_run(mu: float, plant: str) -> ClosedLoopRun:
     """The paper scenario (x0 = [-5, 0], y_t = 5, 50 steps) with the given mu and plant."""

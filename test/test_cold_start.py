@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import PAPER_TARGET, PAPER_X0
+from conftest import PAPER_TARGET, PAPER_X0, count_solves
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
 from nmpc_avoid_ros.core.candidates import Guess, plan_cost
@@ -58,21 +58,6 @@ def ellipses(scene: dict, frame: str) -> list[Ellipse]:
     return [Ellipse(c, a, yaw, frame) for c, a, yaw in scene["ellipses"]]
 
 
-def counting(controller: NmpcController) -> dict[str, int]:
-    """Count the solver calls of the IPOPT reference and of each tier (by its ellipse capacity)."""
-    calls = {}
-    for name, nlp in [("reference", controller.cold_nlp)] + [(f"tier{k}", nlp) for k, nlp in controller.tiers.nlps]:
-        calls[name] = 0
-        original = nlp.solve
-
-        def counted(*args, _name=name, _original=original, **kwargs):
-            calls[_name] += 1
-            return _original(*args, **kwargs)
-
-        nlp.solve = counted
-    return calls
-
-
 def broken_guess(controller: NmpcController) -> Guess:
     """A guess of NaNs (what no guess builder makes; attempt() must refuse it before the solver)."""
     horizon, n, m = controller.nlp.layout.horizon, controller.model.n, controller.model.m
@@ -100,7 +85,7 @@ def kept_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndarray) -> flo
 def test_a_start_among_ellipses_is_solved_on_the_tier_from_the_resting_plan():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
-    calls = counting(controller)
+    calls = count_solves(controller, "reference")
     x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
     result = controller.step(x, y_t, time=0.0)
     # clear of the regions: the straight line is not tried
@@ -114,7 +99,7 @@ def test_a_start_among_ellipses_is_solved_on_the_tier_from_the_resting_plan():
 def test_the_straight_line_is_tried_when_the_resting_plan_is_unusable():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
-    calls = counting(controller)
+    calls = count_solves(controller, "reference")
     straight = controller.escape.cold_guesses(np.array(PAPER_X0, float), np.array(PAPER_TARGET, float))[1]
     assert straight.label == "straight"
     controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller), straight]
@@ -127,7 +112,7 @@ def test_the_straight_line_is_tried_when_the_resting_plan_is_unusable():
 def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
     controller = NmpcController(shipped("robot"))
     controller.set_regions(ellipses(ROBOT_0007, "output"))
-    calls = counting(controller)
+    calls = count_solves(controller, "reference")
     x, y_t = np.array(ROBOT_0007["x0"]), np.array(ROBOT_0007["target"])
     result = controller.step(x, y_t, time=0.0)
     assert calls["reference"] == 0 and calls["tier4"] == 1, calls
@@ -145,7 +130,7 @@ def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
 def test_when_no_guess_is_usable_the_reference_solves_the_start():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
-    calls = counting(controller)
+    calls = count_solves(controller, "reference")
     controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller)] * 2
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     assert calls["reference"] == 1 and calls["tier4"] == 0, calls  # a non-finite guess never reaches FATROP
@@ -159,7 +144,7 @@ def test_regions_that_fit_no_tier_start_on_the_reference():
     square = Polygon(((1.0, 1.2), (1.6, 1.2), (1.6, 1.8), (1.0, 1.8)))
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(list(VDP_ELLIPSES[:2]) + [square])
-    calls = counting(controller)
+    calls = count_solves(controller, "reference")
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     assert calls["reference"] == 1 and sum(v for k, v in calls.items() if k.startswith("tier")) == 0, calls
     assert result.status == "ok" and not result.escape
@@ -186,7 +171,7 @@ def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
     settings = shipped("vdp").replace(max_solve_time=1e-6)
     controller = NmpcController(settings)
     controller.set_regions(VDP_ELLIPSES)
-    calls = counting(controller)
+    calls = count_solves(controller, "reference")
     x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
     tier = controller.tiers.pick(controller.regions)
     # clear_depth -1: every plan counts as penetrating, so the straight line would be tried next

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import PAPER_TARGET, PAPER_X0
+from conftest import PAPER_TARGET, PAPER_X0, count_solves
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
 from nmpc_avoid_ros.core.closed_loop import run_closed_loop
@@ -22,24 +22,9 @@ from nmpc_avoid_ros.core.settings import ControllerSettings
 BASE = ControllerSettings(max_solve_time=2.0)
 
 
-def counting(controller: NmpcController) -> dict[str, int]:
-    """Count the solver calls of the regular NLP and of each tier (by its ellipse capacity)."""
-    calls = {"regular": 0}
-    for name, nlp in [("regular", controller.nlp)] + [(f"tier{k}", nlp) for k, nlp in controller.tiers.nlps]:
-        calls.setdefault(name, 0)
-        original = nlp.solve
-
-        def counted(*args, _name=name, _original=original, **kwargs):
-            calls[_name] += 1
-            return _original(*args, **kwargs)
-
-        nlp.solve = counted
-    return calls
-
-
 def four_ellipse_run(settings: ControllerSettings, regions=VDP_ELLIPSES):
     controller = NmpcController(settings)
-    calls = counting(controller)
+    calls = count_solves(controller, "regular")
     run = run_closed_loop(controller, PAPER_X0, PAPER_TARGET, 45, regions=lambda k: list(regions) if k == 0 else None)
     return controller, run, calls
 
@@ -74,7 +59,7 @@ def test_a_moving_ellipse_is_predicted_in_the_tier_as_in_the_regular_nlp():
 
     def run(settings):
         controller = NmpcController(settings)
-        calls = counting(controller)
+        calls = count_solves(controller, "regular")
         return run_closed_loop(controller, PAPER_X0, PAPER_TARGET, 30,
                                regions=lambda k: [walker] if k == 0 else None), calls
 

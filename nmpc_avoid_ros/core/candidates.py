@@ -28,6 +28,7 @@ from .nlp import Buffered, NlpBase
 from .regions import Region
 from .settings import ControllerSettings
 from .step_result import attempt
+from .warm_start import straight_line
 
 #: points on the steady-state segment from y_a to the target where blocking is checked
 SEGMENT_POINTS = 96
@@ -207,15 +208,12 @@ class EscapeGuesses:
         closed loops were as good (campaign settling mean 21.28 / 48.70 samples against the
         reference's 21.19 / 49.27; both guesses every time: 20.94 / 48.59 at 3x the start's time).
         """
-        s = self.settings
-        x_t, u_t = (v.copy() for v in self._steady(y_t))
-        x_t = np.clip(x_t, s.state_min, s.state_max)
-        u_t = np.clip(u_t, s.input_min, s.input_max)
         y_rest = self.aim(self._output(x, np.zeros(self.model.m))[0].copy())
         x_r, u_r = (v.copy() for v in self._steady(y_rest))
-        y_t = np.asarray(y_t, float).copy()
+        # the straight line is the regular start's own guess (core/warm_start.py)
+        y_a, states, inputs = straight_line(x, y_t, self.horizon, self.settings, self.model)
         return [Guess("rest", y_rest, self._path(x, [], x_r), np.tile(u_r, (self.horizon, 1))),
-                Guess("straight", y_t, self._path(x, [], x_t), np.tile(u_t, (self.horizon, 1)))]
+                Guess("straight", y_a, states, inputs)]
 
     def guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
                 regions: Sequence[Region]) -> list[Guess]:

@@ -298,14 +298,15 @@ class NmpcController:
         s = self.settings
         cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed) and \
             not self.passage.active
-        tier = None if cold or self._plan is None or self._pending is not None or self.passage.active else \
-            self.tiers.pick(self._regions)
-        if tier is not None:  # the regular NLP with fewer (empty) slots; the plan comes back in its layout
+        # not after a budget-cut sample (the regular NLP continues its iterate) nor in the passage mode
+        tier = None if self._pending is not None or self.passage.active else self.tiers.pick(self._regions)
+        if tier is not None and not cold and self._plan is not None:
+            # the regular NLP with fewer (empty) slots; the plan comes back in its layout
             return self.tiers.solve(tier, self._initial_guess(x, y_t, tier)[0], x, par,
                                     self.slot_values(time, tier), s)
         elapsed = 0.0
-        tier = self.tiers.pick(self._regions) if cold and self._plan is None and self.escape.available else None
-        if tier is not None:  # no plan yet: the fast path on the tier (Tiers.cold_start)
+        if tier is not None and cold and self._plan is None and self.escape.available:
+            # no plan yet: the fast path on the tier (Tiers.cold_start)
             result, self._start_report, elapsed = self.tiers.cold_start(
                 tier, self.escape.cold_guesses(x, y_t), x, par, self.slot_values(time, tier), s, VIOLATION_TOLERANCE)
             if result is not None:

@@ -36,14 +36,8 @@ def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | Non
         lam_x, lam_g = nlp.shift_duals(lam_x, lam_g, 1)
         return layout.join_w(U, X, y_a, rest, x0=x), lam_x, lam_g
     if plan is None:
-        y_a = np.asarray(y_t, float)
-        x_a, u_a = steady_of(model, y_a, x)
-        x_a = np.clip(x_a, settings.state_min, settings.state_max)
-        u_a = np.clip(u_a, settings.input_min, settings.input_max)
-        ramp = np.linspace(0, 1, N + 1)[1:, None]
-        X = (1 - ramp) * x + ramp * x_a
-        U = np.tile(u_a, (N, 1))
-        rest = None if layout.closed_form else np.concatenate([x_a, u_a])
+        y_a, X, U = straight_line(x, y_t, N, settings, model)
+        rest = None if layout.closed_form else np.concatenate([X[-1], U[-1]])
         return layout.join_w(U, X, y_a, rest, x0=x), np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
     shift = plan.age + 1
     U = np.vstack([plan.inputs[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
@@ -54,6 +48,18 @@ def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | Non
         return w0, np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
     lam_x, lam_g = nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
     return w0, lam_x, lam_g
+
+
+def straight_line(x: np.ndarray, y_t: np.ndarray, horizon: int, settings: ControllerSettings, model: Model
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The plan that runs straight from x [n] to y_t's steady state (clipped into the bounds) and holds
+    its input: (y_a = y_t [p], x(1..N) [N, n] ending at x_a, u(0..N-1) [N, m] all u_a)."""
+    y_a = np.asarray(y_t, float).copy()
+    x_a, u_a = steady_of(model, y_a, x)
+    x_a = np.clip(x_a, settings.state_min, settings.state_max)
+    u_a = np.clip(u_a, settings.input_min, settings.input_max)
+    ramp = np.linspace(0, 1, horizon + 1)[1:, None]
+    return y_a, (1 - ramp) * x + ramp * x_a, np.tile(u_a, (horizon, 1))
 
 
 def steady_of(model: Model, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
