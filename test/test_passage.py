@@ -145,15 +145,16 @@ def test_nlp_builds_counts_the_long_nlp_and_a_passage_adds_none(monkeypatch):
 
     monkeypatch.setattr(casadi, "nlpsol", counting)
     controller = NmpcController(shipped())
-    # FATROP: the regular NLP, the long one and the 3 ellipse tiers; IPOPT: the cold-start reference and the recovery
-    assert sorted(constructed) == ["fatrop"] * 5 + ["ipopt"] * 2 and controller.nlp_builds == 7
+    # FATROP: the regular NLP, the long one and the 3 ellipse tiers; IPOPT: the cold-start reference, the recovery
+    # and the target projection
+    assert sorted(constructed) == ["fatrop"] * 5 + ["ipopt"] * 3 and controller.nlp_builds == 8
     x, y_t = np.array(VDP_0100["x0"]), np.array(VDP_0100["target"])
     controller.set_regions([Ellipse(*VDP_0100["ellipse"])])
     for _ in range(12):  # the stall escape's 3 guesses, one per sample, then the passage
         x = controller.step(x, y_t).states[1]
         if controller.passage.active:
             break
-    assert controller.passage.active and len(constructed) == controller.nlp_builds == 7
+    assert controller.passage.active and len(constructed) == controller.nlp_builds == 8
 
 
 @pytest.mark.parametrize("changes, message", [

@@ -44,7 +44,8 @@ def test_fast_path_reproduces_the_ipopt_closed_loop(solver, mu, plant):
     else:
         assert max_abs_product(run.x) == pytest.approx(max_abs_product(ref.x), rel=1e-3)
     assert not any(StepStatus(s).is_fallback for s in run.status)
-    assert controller.nlp_builds == 3  # the fast solver, the cold-start reference, the fallback's recovery
+    # the fast solver, the cold-start reference, the fallback's recovery, the target projection
+    assert controller.nlp_builds == 4
 
 
 @pytest.mark.parametrize("solver", FAST)
@@ -68,7 +69,7 @@ def test_obstacle_changes_never_rebuild_the_fast_path():
         res = controller.step(x, [5.0], regions)
         assert res.status in ("ok", "truncated")
         x = res.states[1]
-    assert controller.nlp_builds == builds == 3 and controller.nlp.solver is solver
+    assert controller.nlp_builds == builds == 4 and controller.nlp.solver is solver
 
 
 def test_nlp_builds_counts_every_solver_construction_and_run_time_changes_add_none(monkeypatch):
@@ -82,10 +83,11 @@ def test_nlp_builds_counts_every_solver_construction_and_run_time_changes_add_no
         return real(*args, **kwargs)
 
     monkeypatch.setattr(casadi, "nlpsol", counting_nlpsol)
-    # every controller: its path's solver and the fallback's recovery solve (IPOPT); a fast path also
+    # every controller: its path's solver, the fallback's recovery solve and the target projection
+    # (IPOPT); a fast path also
     # the cold-start reference (IPOPT); sqp with a real-time budget also its own cold-budget copy
-    expected = {("ipopt", 200): ["ipopt", "ipopt"], ("fatrop", 200): ["fatrop", "ipopt", "ipopt"],
-                ("sqp", 5): ["sqpmethod", "sqpmethod", "ipopt", "ipopt"]}
+    expected = {("ipopt", 200): ["ipopt"] * 3, ("fatrop", 200): ["fatrop"] + ["ipopt"] * 3,
+                ("sqp", 5): ["sqpmethod", "sqpmethod"] + ["ipopt"] * 3}
     for (solver, budget), plugins in expected.items():
         constructed.clear()
         controller = NmpcController(PAPER.replace(solver=solver, max_iterations=budget, max_ellipses=1))

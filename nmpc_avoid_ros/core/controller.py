@@ -13,6 +13,7 @@ recovery solve that predicts the least violation over the next samples.
 from __future__ import annotations
 
 import math
+import time as clock
 from collections.abc import Sequence
 
 import numpy as np
@@ -21,8 +22,9 @@ from .candidates import EscapeGuesses, Solution, guess_batch, lowest_cost, plan_
 from .errors import ConfigError, InputError
 from .fallback import VIOLATION_TOLERANCE, FallbackSelector
 from .models import Model, make_model
-from .nlp import NlpBase, TrackingNlp
+from .nlp import SEARCH_SHARE, NlpBase, TrackingNlp
 from .passage import Passage
+from .projection import TargetProjection
 from .regions import Region
 from .settings import RUNTIME_FIELDS, ControllerSettings
 from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
@@ -30,9 +32,13 @@ from .status import StepStatus
 from .step_result import Attempt, Plan, StepResult, attempt, validate_vector
 from .tiers import Tiers
 from .warm_start import initial_guess
+from .worker import SolveWorker
 
 #: samples without a new escape attempt after one that found no better plan (the scene is static)
 ESCAPE_RETRY_SAMPLES = 10
+
+#: solver status of a sample whose state lies outside the solve domain (no solver was called)
+OUTSIDE_SOLVE_DOMAIN = "outside_solve_domain"
 
 #: the reference's time budget for a cold start (no previous plan): this multiple of max_solve_time
 COLD_START_TIME_FACTOR = 10.0
@@ -103,6 +109,15 @@ class NmpcController:
         self._tier_slots: dict[int, np.ndarray] = {}  # static slots per tier NLP (id), packed once per region set
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
+        #: y_t -> its nearest reachable output y* (core/projection.py): the target the NLP tracks
+        self.project_target = TargetProjection(self.settings, self.model)
+        # every solver call of the search runs in a child that is abandoned at the sample's deadline
+        # (core/worker.py): built last, so that the child holds every NLP
+        nlps = [self.nlp, self.cold_nlp, long_nlp, *(tier for _, tier in self.tiers.nlps)]
+        self.worker = SolveWorker([nlp for nlp in nlps if nlp is not None])
+        for nlp in nlps:
+            if nlp is not None:
+                nlp.worker = self.worker
 
     @property
     def nlp_builds(self) -> int:
@@ -110,11 +125,12 @@ class NmpcController:
 
         Counted where each is built (`solver_builds` of NlpBase and FallbackSelector): the solver
         path's own, a fast path's copy with the cold-start budget, the fast paths' cold-start
-        reference (IPOPT), the fallback's recovery solve and the passage mode's long NLP. All are
+        reference (IPOPT), the fallback's recovery solve, the passage mode's long NLP and the target
+        projection (core/projection.py). All are
         built in the constructor: nothing at run time (a target, obstacles, mu, the weights, entering
         or leaving the passage mode) adds to it.
         """
-        parts = (self.nlp, self.cold_nlp, self.fallback, self.passage, self.tiers)
+        parts = (self.nlp, self.cold_nlp, self.fallback, self.passage, self.tiers, self.project_target)
         return sum(part.solver_builds for part in parts if part is not None)
 
     @property
@@ -179,6 +195,22 @@ class NmpcController:
         """Change run-time fields (mu, kappa, weights, predict_obstacles) for the next step; nothing is rebuilt."""
         self.settings = self.checked_settings(**changes)
 
+    def in_solve_domain(self, x: np.ndarray) -> bool:
+        """Whether the state x [n] lies within `solve_domain_margin` box widths of the state box (each
+        bounded coordinate): only such states are handed to a solver (docs/design.md, 'A hard time bound')."""
+        lo, hi = np.asarray(self.settings.state_min, float), np.asarray(self.settings.state_max, float)
+        with np.errstate(invalid="ignore"):  # inf - inf on an unbounded coordinate: no limit there
+            span = self.settings.solve_domain_margin * np.where(np.isfinite(hi - lo), hi - lo, 0.0)
+            inside = ((x >= lo - span) | ~np.isfinite(lo)) & ((x <= hi + span) | ~np.isfinite(hi))
+        return bool(np.all(inside))
+
+    def sample_budget(self) -> float:
+        """The next step's time bound, s: max_solve_time, or for a cold start (no plan yet, or a re-seed
+        through the cold-start solvers) COLD_START_TIME_FACTOR times it. The search's solver calls end by
+        SEARCH_SHARE of it (core/worker.py), the fallback's recovery solve within the rest."""
+        cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed)
+        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if cold else 1.0)
+
     def reset(self) -> None:
         """Forget the last plan (the next step starts cold)."""
         self._plan = None
@@ -210,6 +242,7 @@ class NmpcController:
         Raises InputError for a wrong-size or non-finite x or y_t and RegionError for regions that
         do not fit; the controller's state is unchanged then.
         """
+        begin = clock.perf_counter()
         x = validate_vector("state", x, self.model.n)
         y_t = validate_vector("target", y_t, self.model.p)
         if time is not None and not math.isfinite(time):
@@ -217,7 +250,13 @@ class NmpcController:
         if regions is not None:
             self.set_regions(regions)
         s = self.settings
+        y_t = self.project_target(y_t)
         par = self.parameters(x, y_t, time)
+        self.worker.deadline = begin + SEARCH_SHARE * self.sample_budget()
+        if not self.in_solve_domain(x):
+            result = self._fallback(x, par, OUTSIDE_SOLVE_DOMAIN, 0, 0.0, False, recover=False)
+            result.target = y_t
+            return result
         previous_y_a = None if self._plan is None else self._plan.y_a.copy()
         escape = "passage" if self.passage.active else ""
         if self.passage.active and self.passage.can_hand_back(self._plan, self.nlp.layout.horizon):
@@ -233,7 +272,7 @@ class NmpcController:
             self._reseed = self.cold_nlp is not None and self._pending is None and not self.passage.active
             result = self._fallback(x, par, attempt.solver_status, attempt.iterations, attempt.solve_time,
                                     attempt.budget_cut)
-            result.escape, result.horizon = escape, attempt.nlp.layout.horizon
+            result.escape, result.horizon, result.target = escape, attempt.nlp.layout.horizon, y_t
             return result
         self._pending = None
         self._reseed = False
@@ -264,7 +303,7 @@ class NmpcController:
         status = StepStatus.OK if best.solved else StepStatus.TRUNCATED
         result = self._result(plan, x, 0, status, attempt.solver_status, attempt.iterations, solve_time,
                               attempt.budget_cut)
-        result.escape, result.horizon = escape, best.nlp.layout.horizon
+        result.escape, result.horizon, result.target = escape, best.nlp.layout.horizon, y_t
         # a region the plan cannot avoid (e.g. one placed over the current state): the input that
         # predicts the least violation, and say so; the cheap depth check first (mu = 0: no avoidance;
         # every candidate an escape or the passage mode kept carries its own depth)
@@ -434,7 +473,7 @@ class NmpcController:
         return u
 
     def _fallback(self, x: np.ndarray, par: np.ndarray, solver_status: str, iterations: int, solve_time: float,
-                  budget_cut: bool) -> StepResult:
+                  budget_cut: bool, recover: bool = True) -> StepResult:
         """The candidate input predicting the least violation (core/fallback.py); the plan ages by one."""
         plan = self._plan
         shifted = u_a = None
@@ -444,7 +483,7 @@ class NmpcController:
             N = len(plan.inputs)
             shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])[:H]
             u_a = plan.u_a
-        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N)
+        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, recover)
         solve_time += choice.solve_time
         if plan is not None and choice.kind in ("shift", "steady"):
             result = self._result(plan, x, plan.age, StepStatus(f"fallback_{choice.kind}"), solver_status, iterations,

@@ -20,6 +20,7 @@ cold start drove van der Pol to |x1 x2| - 2 = 4.11).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -27,7 +28,7 @@ import casadi as ca
 import numpy as np
 
 from .models import Model
-from .nlp import NlpBase, problem_parts
+from .nlp import SEARCH_SHARE, NlpBase, problem_parts
 from .settings import ControllerSettings
 
 #: candidates in order of preference among equal predicted violations
@@ -94,7 +95,7 @@ class FallbackSelector:
                    "g": slack - excess}
         options = {"print_time": False, "error_on_fail": False,
                    "ipopt": {"print_level": 0, "sb": "yes", "max_iter": RECOVERY_ITERATIONS,
-                             "max_wall_time": settings.max_solve_time, "tol": 1e-8}}
+                             "max_wall_time": (1 - SEARCH_SHARE) * settings.max_solve_time, "tol": 1e-8}}
         self._recovery = ca.nlpsol("fallback_recovery", "ipopt", problem, options)
         #: solvers constructed here (NmpcController.nlp_builds counts them): the recovery solve
         self.solver_builds = 1
@@ -109,7 +110,9 @@ class FallbackSelector:
     def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
         """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""
         states, worst = self._rollout(x, np.asarray(inputs, float).T, par)
-        return np.asarray(states).T, max(0.0, float(worst))
+        worst = float(worst)
+        # a rollout that overflows (a state far outside Z) predicts the worst, not none: max(0, nan) is 0
+        return np.asarray(states).T, max(0.0, worst) if math.isfinite(worst) else math.inf
 
     def recover(self, x: np.ndarray, par: np.ndarray, start: np.ndarray) -> tuple[np.ndarray | None, float]:
         """Inputs [H, m] minimising the predicted violation from the guess `start` [H, m] (None if the
@@ -128,9 +131,10 @@ class FallbackSelector:
         return inputs, seconds
 
     def choose(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray | None, u_a: np.ndarray | None,
-               plan_left: bool) -> FallbackChoice:
+               plan_left: bool, recover: bool = True) -> FallbackChoice:
         """The least-violating candidate for state x [n]. `plan_inputs` [H, m]: the shifted plan's
-        inputs (padded with u_a); `plan_left`: the shifted plan still has inputs of its own."""
+        inputs (padded with u_a); `plan_left`: the shifted plan still has inputs of its own; `recover`
+        False: no recovery solve (a state outside the solve domain is handed to no solver)."""
         H = self.horizon
         sequences: dict[str, np.ndarray] = {}
         if plan_inputs is not None and plan_left:
@@ -140,7 +144,7 @@ class FallbackSelector:
         sequences["safe"] = np.tile(self.safe_input, (H, 1))
         predicted = {kind: self.predict(x, seq, par) for kind, seq in sequences.items()}
         seconds = 0.0
-        if min(v for _, v in predicted.values()) > VIOLATION_TOLERANCE:
+        if recover and min(v for _, v in predicted.values()) > VIOLATION_TOLERANCE:
             best_start = min(sequences, key=lambda k: predicted[k][1])
             inputs, seconds = self.recover(x, par, sequences[best_start])
             if inputs is not None:

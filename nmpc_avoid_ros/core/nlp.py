@@ -32,11 +32,18 @@ from .expressions import parse_keep_in
 from .models import Model, make_model
 from .regions import SlotLayout
 from .settings import SOLVERS, ControllerSettings
+from .worker import ABANDONED, SolveWorker
+
+#: the share of a sample's time bound (NmpcController.sample_budget) that the search's solver calls may
+#: use: IPOPT's own wall-time limit, and the deadline at which a call in the worker is abandoned; the
+#: fallback's recovery solve is limited to the rest (core/fallback.py)
+SEARCH_SHARE = 0.8
 
 #: return statuses after which the solution is used as is (IPOPT, sqpmethod; FATROP reports 0)
 SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
 #: statuses that mean the iteration or time budget cut the solve
-BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
+BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded",
+                              ABANDONED})
 
 
 @dataclass
@@ -244,6 +251,8 @@ class NlpBase:
 
     #: the same solver with a cold-start iteration budget (where the run-time budget is smaller)
     cold_solver: ca.Function | None = None
+    #: where `solve` runs: None here, else a SolveWorker's child that can be abandoned (core/worker.py)
+    worker: SolveWorker | None = None
 
     def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
@@ -253,8 +262,11 @@ class NlpBase:
         of the solver call alone, s (reading the stats costs ~0.07 ms more and is not included).
 
         The call goes through `Function.buffer()` with arrays bound once, so no argument is
-        converted or allocated per call (a dict call costs ~0.15 ms more, measured).
+        converted or allocated per call (a dict call costs ~0.15 ms more, measured). With a `worker`
+        (core/worker.py) it runs in the worker's child and is abandoned at the worker's deadline.
         """
+        if self.worker is not None:
+            return self.worker.solve(self, w0, par, lam_x0, lam_g0, cold, self.worker.deadline)
         call = self._cold_solver_call if cold and self.cold_solver is not None else self._solver_call
         results = call(w0, par, lam_x0, lam_g0)
         return results[0].copy(), results[3].copy(), results[4].copy(), call.stats(), call.seconds
@@ -455,7 +467,7 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
     opts: dict = {"print_time": False, "error_on_fail": False}
     if path == "ipopt":
         opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": settings.max_iterations,
-                         "max_wall_time": settings.max_solve_time, "tol": settings.tolerance}
+                         "max_wall_time": SEARCH_SHARE * settings.max_solve_time, "tol": settings.tolerance}
     elif path == "fatrop":
         opts.update({"structure_detection": "auto", "equality": [bool(e) for e in equality],
                      "fatrop": {"print_level": 0, "max_iter": settings.max_iterations, "tol": settings.tolerance}})

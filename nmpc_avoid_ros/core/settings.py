@@ -111,6 +111,11 @@ class ControllerSettings:
     max_solve_time: float = setting(2.0, "solver wall-time budget per sample, s (enforced by IPOPT; the fast paths "
                                          "are bounded by max_iterations); a solver option, fixed at construction",
                                     low=0.0, low_open=True)
+    solve_domain_margin: float = setting(
+        1.0, "a state further outside the state box than this many box widths (in any bounded coordinate) gets no "
+             "solver call: the NLP's x(1) in the box is out of reach from there, and FATROP may not return on such "
+             "states; the sample applies the fallback at once (docs/design.md, 'A hard time bound')",
+        runtime=True, low=0.0)
     tolerance: float = setting(1e-8, "solver convergence tolerance; a solver option, fixed at construction",
                                low=0.0, low_open=True)
     feasibility_tolerance: float = setting(1e-6, "a budget-cut iterate is applied only if its constraint violation "

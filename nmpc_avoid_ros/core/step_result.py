@@ -41,6 +41,8 @@ class StepResult:
             escape_horizon in the passage mode (0: no solve, e.g. `coast`).
         fallback_reason: for a fallback, which candidate was applied and every candidate's
             predicted violation; predicted_violation: the applied one's (region g / state units).
+        target: the output y* [p] the NLP tracked: y_t, or for a y_t out of reach its nearest
+            reachable output (core/projection.py); None where no sample was solved (`coast`).
         region_unavoidable: the solved plan predicts a violation beyond VIOLATION_TOLERANCE (a
             region cannot be avoided from this state): the least-violating input was applied.
     """
@@ -64,6 +66,7 @@ class StepResult:
     predicted_violation: float = math.nan
     region_unavoidable: bool = False
     horizon: int = 0
+    target: np.ndarray | None = None
 
     @property
     def is_fallback(self) -> bool:

@@ -1,0 +1,208 @@
+"""Solver calls in a child process that can be abandoned at the sample's deadline.
+
+Why: a solver call must end by the sample's deadline for every input that passes validation, and
+FATROP cannot be bounded by its own options: on a state of [5e5, -3e5], or inside the state box
+among validated obstacles of 1e6 m, its restoration phase loops for good inside one iteration
+(measured: no return after 290 s with max_iterations 200; it does not poll signals either). A
+thread cannot be stopped and would keep a core busy; a process can be killed.
+
+How: the controller's NLPs are built first; the first solve forks a child that holds copies of
+them. A call copies the guess and parameters into shared memory, writes one byte on a pipe and
+waits on the answer pipe until the deadline. On time: the results are read back from shared
+memory. Late: the child is killed (SIGKILL) and the call answers ABANDONED with a non-finite
+iterate; the next call forks a fresh child from the parent, whose copies were never used. The
+round trip costs ~20 microseconds (BENCHMARKS.md); a fork ~10 ms, only after an abandoned call.
+
+The child ignores SIGINT (the parent decides when it ends), dies with the parent (PR_SET_PDEATHSIG
+where Linux offers it, and on end of file on its request pipe) and never runs the parent's
+exit handlers (os._exit).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import mmap
+import os
+import select
+import signal
+import struct
+import threading
+import time
+import warnings
+import weakref
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .nlp import NlpBase
+
+#: solver status of a call that did not answer by its deadline (the child was killed)
+ABANDONED = "Abandoned_At_Deadline"
+#: bytes of the solver's return status kept in shared memory
+_STATUS_BYTES = 64
+#: header: iterations (int64), solve seconds (float64), status length (int64), status bytes
+_HEADER = struct.Struct(f"qdq{_STATUS_BYTES}s")
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """Ask Linux to SIGKILL this (child) process when its parent ends; a no-op elsewhere."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+class SolveWorker:
+    """One child process serving the solver calls of a fixed list of NLPs."""
+
+    def __init__(self, nlps: Sequence[NlpBase]) -> None:
+        self._nlps = list(nlps)
+        self._index = {id(nlp): i for i, nlp in enumerate(self._nlps)}
+        sizes = [(nlp.layout.n_w, _parameter_count(nlp), nlp.lbg.size) for nlp in self._nlps]
+        self._in_size = max(2 * n_w + n_p + n_g for n_w, n_p, n_g in sizes)
+        self._out_size = max(2 * n_w + n_g for n_w, _, n_g in sizes)
+        floats = self._in_size + self._out_size
+        self._memory = mmap.mmap(-1, _HEADER.size + 8 * floats)  # anonymous and shared: survives fork
+        self._inputs = np.frombuffer(self._memory, np.float64, self._in_size, _HEADER.size)
+        self._outputs = np.frombuffer(self._memory, np.float64, self._out_size, _HEADER.size + 8 * self._in_size)
+        self._child = _Child()
+        self._lock = threading.Lock()  # one call at a time (a multi-threaded executor may call step)
+        #: children forked so far (the first, then one after each abandoned call)
+        self.forks = 0
+        #: the deadline (time.perf_counter s) of the calls of the current sample (NmpcController.step sets it)
+        self.deadline = math.inf
+        weakref.finalize(self, self._child.stop)  # the child never outlives its worker
+
+    # -- the parent's side -----------------------------------------------------------------
+    def solve(self, nlp: NlpBase, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray,
+              cold: bool, deadline: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
+        """NlpBase.solve of `nlp` in the child, answered by `deadline` (time.perf_counter seconds) or
+        abandoned: then w, lam_x, lam_g are NaN and the stats say ABANDONED."""
+        n_w, n_g = nlp.layout.n_w, nlp.lbg.size
+        with self._lock:
+            begin = time.perf_counter()
+            if deadline - begin > 0:
+                self._ensure_child()
+                n_p = par.size
+                np.copyto(self._inputs[:n_w], w0)
+                np.copyto(self._inputs[n_w:n_w + n_p], par)
+                np.copyto(self._inputs[n_w + n_p:2 * n_w + n_p], lam_x0)
+                np.copyto(self._inputs[2 * n_w + n_p:2 * n_w + n_p + n_g], lam_g0)
+                os.write(self._child.request, struct.pack("<IB", self._index[id(nlp)], int(cold)))
+                if self._wait(deadline):
+                    iterations, seconds, length, raw = _HEADER.unpack_from(self._memory, 0)
+                    out = self._outputs
+                    stats = {"return_status": raw[:length].decode(), "iter_count": int(iterations)}
+                    return (out[:n_w].copy(), out[n_w:2 * n_w].copy(), out[2 * n_w:2 * n_w + n_g].copy(), stats,
+                            seconds)
+                self._child.stop()
+        nan_w = np.full(n_w, np.nan)
+        return nan_w, nan_w.copy(), np.full(n_g, np.nan), {"return_status": ABANDONED, "iter_count": 0}, \
+            time.perf_counter() - begin
+
+    def _wait(self, deadline: float) -> bool:
+        """Whether the child answered before `deadline` (False also when it died)."""
+        while True:
+            left = deadline - time.perf_counter()
+            if left <= 0:
+                return False
+            ready, _, _ = select.select([self._child.answer], [], [], None if math.isinf(left) else left)
+            if ready:
+                return os.read(self._child.answer, 1) == b"."
+
+    def _ensure_child(self) -> None:
+        if self._child.pid:
+            return
+        request_read, request_write = os.pipe()
+        answer_read, answer_write = os.pipe()
+        with warnings.catch_warnings():
+            # the child runs only solver code on memory it owns: no lock of another thread is needed
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+        if pid == 0:  # the child
+            os.close(request_write)
+            os.close(answer_read)
+            self._serve(request_read, answer_write)
+        os.close(request_read)
+        os.close(answer_write)
+        self._child.pid, self._child.request, self._child.answer = pid, request_write, answer_read
+        self.forks += 1
+
+    def close(self) -> None:
+        """Stop the child (a later call forks a new one)."""
+        with self._lock:
+            self._child.stop()
+
+    # -- the child's side ------------------------------------------------------------------
+    def _serve(self, request: int, answer: int) -> None:
+        """The child's loop: solve each request, answer with one byte; exit on end of file."""
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            _die_with_parent()
+            for nlp in self._nlps:
+                nlp.worker = None  # solve here, not through a worker
+            while True:
+                message = _read_exactly(request, 5)
+                if message is None:
+                    break
+                index, cold = struct.unpack("<IB", message)
+                self._solve_here(self._nlps[index], bool(cold))
+                os.write(answer, b".")
+        finally:
+            os._exit(0)
+
+    def _solve_here(self, nlp: NlpBase, cold: bool) -> None:
+        n_w, n_g, n_p = nlp.layout.n_w, nlp.lbg.size, _parameter_count(nlp)
+        inputs = self._inputs
+        w0, par = inputs[:n_w], inputs[n_w:n_w + n_p]
+        lam_x0, lam_g0 = inputs[n_w + n_p:2 * n_w + n_p], inputs[2 * n_w + n_p:2 * n_w + n_p + n_g]
+        w, lam_x, lam_g, stats, seconds = nlp.solve(w0, par, lam_x0, lam_g0, cold=cold)
+        out = self._outputs
+        out[:n_w], out[n_w:2 * n_w], out[2 * n_w:2 * n_w + n_g] = w, lam_x, lam_g
+        status = str(stats.get("return_status", "unknown")).encode()[:_STATUS_BYTES]
+        iterations = int(stats.get("iter_count", -1))
+        _HEADER.pack_into(self._memory, 0, iterations, seconds if math.isfinite(seconds) else 0.0, len(status),
+                          status)
+
+
+class _Child:
+    """The child process and its two pipe ends (pid 0: none running)."""
+
+    def __init__(self) -> None:
+        self.pid, self.request, self.answer = 0, -1, -1
+
+    def stop(self) -> None:
+        """Kill and reap the child, close the pipes (idempotent)."""
+        if not self.pid:
+            return
+        for fd in (self.request, self.answer):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        try:
+            os.kill(self.pid, signal.SIGKILL)
+            os.waitpid(self.pid, 0)
+        except (ProcessLookupError, ChildProcessError):
+            pass
+        self.pid, self.request, self.answer = 0, -1, -1
+
+
+def _read_exactly(fd: int, count: int) -> bytes | None:
+    data = b""
+    while len(data) < count:
+        chunk = os.read(fd, count - len(data))
+        if not chunk:
+            return None
+        data += chunk
+    return data
+
+
+def _parameter_count(nlp: NlpBase) -> int:
+    """Length of the NLP's parameter vector (its solver's 'p' input)."""
+    return int(nlp.solver.size1_in(nlp.solver.index_in("p")))
