@@ -40,6 +40,10 @@ ESCAPE_RETRY_SAMPLES = 10
 #: solver status of a sample whose state lies outside the solve domain (no solver was called)
 OUTSIDE_SOLVE_DOMAIN = "outside_solve_domain"
 
+#: what a step may take beyond NmpcController.sample_budget(), s: the fallback's simulations and the
+#: result's bookkeeping after the recovery solve's limit (test/test_time_bound.py holds every step to it)
+TIME_BOUND_MARGIN = 0.05
+
 #: the reference's time budget for a cold start (no previous plan): this multiple of max_solve_time
 COLD_START_TIME_FACTOR = 10.0
 
@@ -502,7 +506,9 @@ class NmpcController:
     def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
                 solve_time: float, budget_cut: bool) -> StepResult:
         N = len(plan.inputs)  # the regular horizon, or the passage mode's
-        inputs = np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))])
+        # into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond them seen)
+        inputs = np.clip(np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))]), self._input_lo,
+                         self._input_hi)
         states = np.vstack([x, plan.states[age + 1:], np.tile(plan.x_a, (min(age, N), 1))])
         return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
                           *plan.costs, status, solver_status, iterations, solve_time, budget_cut)
