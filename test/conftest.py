@@ -25,7 +25,7 @@ def count_solves(controller: NmpcController, first: str) -> dict[str, int]:
     """Count the solver calls of one of the controller's NLPs (`first`: "regular" or the fast path's
     "reference") and of each ellipse tier ("tier<k>", k its capacity); the dict fills as they run."""
     nlps = [(first, controller.nlp if first == "regular" else controller.cold_nlp)]
-    nlps += [(f"tier{k}", nlp) for k, nlp in controller.tiers.nlps]
+    nlps += [(f"tier{k}", nlp) for k, nlp in controller.tiered.tiers]
     calls = {}
     for name, nlp in nlps:
         calls[name] = 0

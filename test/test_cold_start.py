@@ -15,12 +15,13 @@ import pytest
 from conftest import PAPER_TARGET, PAPER_X0, count_solves
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
-from nmpc_avoid_ros.core.candidates import Guess, plan_cost
+from nmpc_avoid_ros.core.candidates import Guess, guess_start
 from nmpc_avoid_ros.core.closed_loop import run_closed_loop
 from nmpc_avoid_ros.core.controller import NmpcController
 from nmpc_avoid_ros.core.regions import Ellipse, Polygon
+from nmpc_avoid_ros.core.search import Start, plan_cost, solve_start
 from nmpc_avoid_ros.core.settings import ControllerSettings
-from nmpc_avoid_ros.core.step_result import attempt
+from nmpc_avoid_ros.core.warm_start import initial_guess
 from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings
 
 #: campaign robot-0007: FATROP from the straight line used its 200 iterations in vain; the resting
@@ -59,7 +60,7 @@ def ellipses(scene: dict, frame: str) -> list[Ellipse]:
 
 
 def broken_guess(controller: NmpcController) -> Guess:
-    """A guess of NaNs (what no guess builder makes; attempt() must refuse it before the solver)."""
+    """A guess of NaNs (what no guess builder makes; solve_start must refuse it before the solver)."""
     horizon, n, m = controller.nlp.layout.horizon, controller.model.n, controller.model.m
     return Guess("broken", np.array([math.nan]), np.full((horizon, n), math.nan), np.full((horizon, m), math.nan))
 
@@ -68,15 +69,15 @@ def reference_start_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndar
     """The cost of the IPOPT reference's plan from the straight line (what the start was before)."""
     nlp = controller.cold_nlp
     par = controller.parameters(x, y_t, 0.0)
-    w0, lam_x, lam_g = controller._initial_guess(x, y_t, nlp)
-    result = attempt(nlp, nlp.fill_slacks(w0, par), par, lam_x, lam_g, 200, 1e-6, cold=True)
+    w0, lam_x, lam_g = initial_guess(nlp, x, y_t, None, None, controller.settings, controller.model)
+    result = solve_start(Start("reference", nlp, nlp.fill_slacks(w0, par), lam_x, lam_g, 200, True), par, 1e-6)
     assert result.solved
     return plan_cost(nlp, result.w, par)
 
 
 def kept_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndarray) -> float:
     """The cost of the plan the controller kept, evaluated on the regular NLP."""
-    plan, nlp = controller._plan, controller.nlp
+    plan, nlp = controller.memory.plan, controller.nlp
     par = controller.parameters(x, y_t, 0.0)
     return plan_cost(nlp, nlp.fill_slacks(nlp.layout.join_w(plan.inputs, plan.states[1:], plan.y_a, None, x0=x),
                                           par), par)
@@ -90,8 +91,10 @@ def test_a_start_among_ellipses_is_solved_on_the_tier_from_the_resting_plan():
     result = controller.step(x, y_t, time=0.0)
     # clear of the regions: the straight line is not tried
     assert calls == {"reference": 0, "tier0": 0, "tier2": 0, "tier4": 1}, calls
-    assert result.status == "ok" and result.escape.startswith("cold start: rest; rest: cost "), result.escape
-    reported = float(result.escape.split("cost ")[1].split(",")[0])
+    report = result.search
+    assert result.status == "ok" and (report.phase, report.kept) == ("cold", "rest"), report
+    assert [t.label for t in report.tried] == ["rest"]
+    reported = report.tried[0].cost
     assert kept_cost(controller, x, y_t) == pytest.approx(reported, rel=1e-5)
     assert kept_cost(controller, x, y_t) <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
 
@@ -106,7 +109,10 @@ def test_the_straight_line_is_tried_when_the_resting_plan_is_unusable():
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     assert calls["tier4"] == 1 and calls["reference"] == 0, calls  # the broken guess never reaches FATROP
     assert result.status == "ok", result.status
-    assert result.escape.startswith("cold start: straight; broken: unusable (non_finite_guess); straight: cost ")
+    report = result.search
+    assert report.kept == "straight" and [(t.label, t.outcome) for t in report.tried] == [
+        ("broken", "unusable"), ("straight", "kept")], report
+    assert report.tried[0].solver_status == "non_finite_guess"
 
 
 def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
@@ -116,15 +122,14 @@ def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
     x, y_t = np.array(ROBOT_0007["x0"]), np.array(ROBOT_0007["target"])
     result = controller.step(x, y_t, time=0.0)
     assert calls["reference"] == 0 and calls["tier4"] == 1, calls
-    assert result.status == "ok" and result.escape.startswith("cold start: rest; rest: cost "), result.escape
+    assert result.status == "ok" and (result.search.phase, result.search.kept) == ("cold", "rest"), result.search
     assert kept_cost(controller, x, y_t) <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
     # the straight line alone: FATROP stops at its iteration budget deep inside a region (cost 4e7)
-    tier = controller.tiers.pick(controller.regions)
-    _, report, _ = controller.tiers.cold_start(tier, controller.escape.cold_guesses(x, y_t)[1:], x,
-                                               controller.parameters(x, y_t, 0.0), controller.slot_values(0.0, tier),
-                                               controller.settings, 1e-3)
-    line = report[-1]
-    assert line.startswith("straight: ") and ("unusable" in line or float(line.split("depth ")[1]) > 1e-3), report
+    par = controller.parameters(x, y_t, 0.0)
+    start = guess_start(controller.tiered, x, par, controller.escape.cold_guesses(x, y_t)[1])
+    start.budget, start.cold = 200, True
+    line = solve_start(start, par, controller.settings.feasibility_tolerance)
+    assert line.label == "straight" and (not line.usable or line.depth > 1e-3), line
 
 
 def test_when_no_guess_is_usable_the_reference_solves_the_start():
@@ -134,7 +139,8 @@ def test_when_no_guess_is_usable_the_reference_solves_the_start():
     controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller)] * 2
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     assert calls["reference"] == 1 and calls["tier4"] == 0, calls  # a non-finite guess never reaches FATROP
-    assert result.status == "ok" and result.escape.count("broken: unusable (non_finite_guess)") == 2, result.escape
+    assert result.status == "ok" and [t.solver_status for t in result.search.tried][:2] == ["non_finite_guess"] * 2
+    assert result.search.kept == "reference", result.search
     # the loop goes on from the reference's plan on the tier
     after = controller.step(result.states[1], PAPER_TARGET, time=0.5)
     assert after.status == "ok" and calls["reference"] == 1 and calls["tier4"] == 1, calls
@@ -147,7 +153,7 @@ def test_regions_that_fit_no_tier_start_on_the_reference():
     calls = count_solves(controller, "reference")
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     assert calls["reference"] == 1 and sum(v for k, v in calls.items() if k.startswith("tier")) == 0, calls
-    assert result.status == "ok" and not result.escape
+    assert result.status == "ok" and [t.label for t in result.search.tried] == ["reference"], result.search
 
 
 def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
@@ -170,16 +176,15 @@ def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
 
 
 def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
-    settings = shipped("vdp").replace(max_solve_time=1e-6)
+    settings = shipped("vdp").replace(max_solve_time=1e-3)
     controller = NmpcController(settings)
     controller.set_regions(VDP_ELLIPSES)
     calls = count_solves(controller, "reference")
     x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
-    tier = controller.tiers.pick(controller.regions)
-    # clear_depth -1: every plan counts as penetrating, so the straight line would be tried next
-    result, report, spent = controller.tiers.cold_start(tier, controller.escape.cold_guesses(x, y_t), x,
-                                                        controller.parameters(x, y_t, 0.0),
-                                                        controller.slot_values(0.0, tier), settings, -1.0)
-    assert calls["tier4"] == 1, calls
-    assert report[0] == "cold start: rest" and report[-1] == "straight: not tried (sample budget spent)", report
-    assert result.usable and spent == result.solve_time > settings.max_solve_time
+    result = controller.step(x, y_t, time=0.0)
+    tried = result.search.tried
+    # the resting plan's solve spent the budget: neither the straight line nor the reference is started
+    assert calls["tier4"] == 1 and calls["reference"] == 0, calls
+    assert [t.label for t in tried] == ["rest", "straight", "reference"], tried
+    assert all(t.outcome == "not tried (sample budget spent)" for t in tried[1:]), tried
+    assert result.solve_time <= controller.sample_budget() + 0.05

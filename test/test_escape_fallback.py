@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from conftest import PAPER_STEPS, PAPER_TARGET, PAPER_X0
 
-from nmpc_avoid_ros.core.candidates import Guess, Solution, lowest_cost, plan_cost
+from nmpc_avoid_ros.core.candidates import Guess, escape_admission, guess_start
 from nmpc_avoid_ros.core.closed_loop import run_closed_loop
 from nmpc_avoid_ros.core.controller import NmpcController
 from nmpc_avoid_ros.core.errors import InputError
 from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.search import Candidate, SearchReport, plan_cost, search
 from nmpc_avoid_ros.core.settings import ControllerSettings
 
 #: an ellipse across x2 = 0 (steady states x1 in [2.95, 3.45]) whose top is only 0.05 above the
@@ -44,7 +45,7 @@ def test_an_ellipse_across_the_steady_states_is_passed_not_rested_in_front_of():
     best = 6.0 * controller.settings.steady_state_scale
     assert run.x[-1, 0] == pytest.approx(best, abs=0.05), "rested in front of the ellipse (today's x1 = 2.95)"
     assert max(BLOCKER.depth(x) for x in run.x) <= 1e-3
-    escapes = [r.escape for r in results if r.escape]
+    escapes = [r.search.kept for r in results if r.search.guesses_tried]
     assert escapes and escapes[0].startswith("beyond"), escapes
     assert set(run.status) == {"ok"}
 
@@ -78,12 +79,26 @@ def test_the_paper_loops_never_trigger_an_escape_or_a_fallback(paper, mu, plant,
     results = []
     run = run_closed_loop(controller, PAPER_X0, PAPER_TARGET, PAPER_STEPS, plant,
                           on_step=lambda k, res: results.append(res))
-    assert not any(r.escape or r.is_fallback for r in results)
+    assert not any(r.search.guesses_tried or r.is_fallback for r in results)
     assert all(r.horizon == 5 for r in results)
     np.testing.assert_array_equal(run.x, paper(mu, plant).x)
 
 
-def test_lowest_cost_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_with_penetration():
+def solved(label: str, nlp, w: np.ndarray, cost: float, depth: float) -> Candidate:
+    """A plan as a search candidate (solved, usable) with the given cost and predicted depth."""
+    return Candidate(label, nlp, w, np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size), "Solve_Succeeded", 1, 0.0,
+                     True, True, False, True, cost, depth)
+
+
+def escape(nlp, x, par, base, guesses, time_left):
+    """The escape's search (NmpcController._escape): base and guesses, no deeper than the base."""
+    report = SearchReport()
+    best, _, spent = search([guess_start(nlp, x, par, g) for g in guesses], par, time_left, report, "escape", 1e-6,
+                            base=base, admit=escape_admission(base))
+    return best, report.tried, spent
+
+
+def test_the_escape_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_with_penetration():
     controller = NmpcController(ControllerSettings())
     controller.set_regions([BLOCKER])
     x, y_t = np.array([2.95, 0.0]), np.array([7.9])
@@ -91,13 +106,12 @@ def test_lowest_cost_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_w
     # the stalled plan: solved from a guess resting in front of the ellipse
     w0 = nlp.fill_slacks(nlp.layout.join_w(np.zeros((5, 1)) + 2.95, np.tile(x, (5, 1)), np.array([2.95]), None), par)
     w = nlp.solve(w0, par, np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size))[0]
-    base = Solution(w, np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size), nlp, True, plan_cost(nlp, w, par),
-                    nlp.max_depth(w, par))
+    base = solved("shifted", nlp, w, plan_cost(nlp, w, par), nlp.max_depth(w, par))
     stalled_y_a = nlp.layout.split_w(w)[2]
     assert stalled_y_a[0] < 2.96
     beyond = controller.escape.guesses(x, stalled_y_a, y_t, par, controller.regions)
     assert [g.label for g in beyond][:1] == ["beyond0"] and beyond[0].y_a[0] > 3.45
-    best, tried, _ = lowest_cost(nlp, x, par, base, beyond[:1], 1.0, 1e-6)
+    best, tried, _ = escape(nlp, x, par, base, beyond[:1], 1.0)
     assert best is not base and best.cost < base.cost and best.depth <= base.depth + 1e-4, tried
     # a guess straight through the ellipse with a penalty weight too small to keep out: cheaper,
     # but it penetrates, so it is refused
@@ -105,12 +119,12 @@ def test_lowest_cost_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_w
     par_cheap[4] = 1.0  # mu
     through = Guess("through", np.array([5.0]), np.column_stack([np.linspace(3.2, 5.0, 5), np.full(5, 0.5)]),
                     np.zeros((5, 1)))
-    base_cheap = Solution(w, base.lam_x, base.lam_g, nlp, True, plan_cost(nlp, w, par_cheap), base.depth)
-    kept, tried, _ = lowest_cost(nlp, x, par_cheap, base_cheap, [through], 1.0, 1e-6)
-    assert kept is base_cheap, tried
-    # no time left: nothing is tried
-    kept, tried, spent = lowest_cost(nlp, x, par, base, beyond, 0.0, 1e-6)
-    assert kept is base and spent == 0.0 and all("not tried" in t for t in tried)
+    base_cheap = solved("shifted", nlp, w, plan_cost(nlp, w, par_cheap), base.depth)
+    kept, tried, _ = escape(nlp, x, par_cheap, base_cheap, [through], 1.0)
+    assert kept is base_cheap and tried[-1].outcome == "penetrates more", tried
+    # no time left: the first guess is solved (the budget rule starts one), no further one
+    kept, tried, spent = escape(nlp, x, par, base, beyond, 0.0)
+    assert len(beyond) > 1 and all(t.outcome == "not tried (sample budget spent)" for t in tried[1:]), tried
 
 
 def test_no_escape_without_a_region_across_the_way():
@@ -204,7 +218,7 @@ def test_a_plan_resting_at_an_ellipse_centre_is_replaced_by_a_clear_one_at_once(
     run = run_closed_loop(controller, VDP_0097["x0"], VDP_0097["target"], 30,
                           regions=lambda k: regions if k == 0 else None, on_step=lambda k, res: results.append(res))
     first = results[0]
-    assert first.status == "ok" and first.escape.split(";")[0] != "shifted", first.escape
+    assert first.status == "ok" and first.search.guess_taken, first.search
     assert max(e.depth(x) for e in regions for x in first.states) <= 1e-3
     assert max(e.depth(x) for e in regions for x in run.x) <= 1e-3, "today: 0.80 after the first step"
     assert keep_in_penetration(run.x) <= 1e-3
@@ -266,20 +280,20 @@ def test_an_unreachable_goal_beyond_the_box_edge_is_reached_past_an_ellipse_acro
     run = run_closed_loop(controller, ROBOT_0069["x0"], ROBOT_0069["target"], 140,
                           regions=lambda k: regions if k == 0 else None, on_step=lambda k, res: results.append(res))
     assert np.linalg.norm(run.x[-1, :2] - aim) < 0.05, f"today: rests at {run.x[-1, :2]}, 7.6 m short"
-    assert any(r.escape and r.escape.split(";")[0] != "shifted" for r in results)
+    # the controller tracks the goal's projection onto Y_r, which is the aim (core/projection.py): the
+    # loop no longer needs an escape guess to leave the edge (it took one while it tracked the goal itself)
+    assert all(r.target == pytest.approx(aim, abs=1e-6) for r in results)
     assert max(e.depth(x[:2]) for e in regions for x in run.x[1:]) <= 1e-3
 
 
-def test_a_clear_plan_beats_a_cheaper_penetrating_base_only_when_asked_to():
+def test_a_clear_plan_beats_a_cheaper_penetrating_base():
     controller = NmpcController(ControllerSettings())
     controller.set_regions([BLOCKER])
     x, y_t = np.array([2.95, 0.0]), np.array([7.9])
     nlp, par = controller.nlp, controller.parameters(x, y_t)
     rest = Guess("rest", np.array([2.95]), np.tile(x, (5, 1)), np.full((5, 1), 2.95))
-    zeros = np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size)
-    # a base that claims to be cheaper than anything but predicts penetration 0.5
-    base = Solution(np.zeros(nlp.layout.n_w), *zeros, nlp, True, cost=-1.0, depth=0.5)
-    kept, tried, _ = lowest_cost(nlp, x, par, base, [rest], 1.0, 1e-6)
-    assert kept is base, tried  # by cost alone the base stays
-    best, tried, _ = lowest_cost(nlp, x, par, base, [rest], 1.0, 1e-6, clear_depth=1e-3)
+    # a base that claims to be cheaper than anything but predicts penetration 0.5: the one ranking puts
+    # a clear plan first, whatever the costs
+    base = solved("shifted", nlp, np.zeros(nlp.layout.n_w), -1.0, 0.5)
+    best, tried, _ = escape(nlp, x, par, base, [rest], 1.0)
     assert best is not base and best.label == "rest" and best.depth <= 1e-3 and best.cost > base.cost, tried

@@ -14,7 +14,6 @@ from conftest import PAPER_TARGET, PAPER_X0
 from test_passage import BEST, VDP_0100, run_vdp_0100, shipped
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
-from nmpc_avoid_ros.core import candidates, passage
 from nmpc_avoid_ros.core.candidates import Guess, guess_batch
 from nmpc_avoid_ros.core.closed_loop import run_closed_loop
 from nmpc_avoid_ros.core.controller import NmpcController
@@ -45,22 +44,14 @@ def test_a_bad_guesses_per_sample_is_refused():
 
 
 @pytest.fixture
-def count_guess_solves(monkeypatch):
-    """A list that gets, per controller step, how many escape or passage guesses were solved."""
-    solves = [0]
-    original = candidates.solve_guess
-
-    def counted(*args, **kwargs):
-        solves[0] += 1
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(candidates, "solve_guess", counted)
-    monkeypatch.setattr(passage, "solve_guess", counted)
+def count_guess_solves():
+    """A list that gets, per controller step, how many escape or passage guesses were solved (read from
+    the step's search report)."""
     per_step: list[int] = []
 
     def on_step(k, result):
-        per_step.append(solves[0])
-        solves[0] = 0
+        per_step.append(sum(t.phase in ("escape", "passage_try") and not t.outcome.startswith("not tried")
+                            for t in result.search.tried))
 
     return per_step, on_step
 
@@ -85,7 +76,7 @@ def test_one_guess_per_sample_spreads_the_escape_and_still_reaches_the_target(co
     per_step, on_step = count_guess_solves
     run, results, penetration = run_four_ellipses(1, on_step)
     assert max(per_step) == 1, per_step
-    spread = [r.escape for r in results if "more next sample" in r.escape]
+    spread = [r.search for r in results if r.search.more_next_sample]
     assert spread, "the escape never needed a second sample: the scene no longer tests the batches"
     assert run.x[-1, 0] == pytest.approx(PAPER_TARGET[0], abs=0.05)
     assert penetration <= 1e-3
@@ -104,7 +95,8 @@ def test_the_passage_mode_tries_its_guesses_one_per_sample_and_still_passes(coun
     assert max(per_step) == 1, per_step
     assert run.x[-1, 0] == pytest.approx(BEST, abs=0.02), run.x[-1]
     assert penetration <= 1e-3
-    labels = [r.escape for r in results]
-    assert any(e.startswith("passage:") for e in labels), labels
-    assert any("more next sample" in e for e in labels), "the stall escape before the passage was not spread"
+    labels = [r.escape for r in results]  # for the failure message only
+    assert any(r.search.entered_passage for r in results), labels
+    assert any(r.search.phase == "escape" and r.search.more_next_sample for r in results), \
+        "the stall escape before the passage was not spread"
     assert VDP_0100["target"][0] < BEST  # the best admissible point, not the target, is what is reached

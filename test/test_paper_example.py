@@ -127,7 +127,7 @@ def test_failed_solve_falls_back_to_the_shifted_plan_then_the_steady_input():
     controller_ok = NmpcController(ControllerSettings())
     x = np.array([-5.0, 0.0])
     plan = controller_ok.step(x, [5.0])
-    controller._plan = controller_ok._plan  # the last good plan, then every solve is starved
+    controller.memory = controller_ok.memory  # the last good plan, then every solve is starved
     statuses, inputs = [], []
     for k in range(7):
         # the plant follows the plan (its states, then x_a): each candidate is judged from there

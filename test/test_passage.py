@@ -66,9 +66,9 @@ def test_campaign_scene_is_passed_with_the_mode_and_rested_in_front_of_without(w
     assert run.x[-1, 0] == pytest.approx(BEST, abs=0.02), run.x[-1]
     assert penetration <= 1e-3
     assert set(run.status) == {"ok"}
-    labels = [r.escape for r in results]
-    entered = [k for k, e in enumerate(labels) if e.startswith("passage:")]
-    ended = [k for k, e in enumerate(labels) if e == "passage ended"]
+    labels = [r.escape for r in results]  # for the failure message only
+    entered = [k for k, r in enumerate(results) if r.search.entered_passage]
+    ended = [k for k, r in enumerate(results) if r.search.phase == "passage_ended"]
     assert len(entered) == 1 and len(ended) == 1 and entered[0] < ended[0], labels
     long_ = controller.settings.escape_horizon
     # the long NLP from entry to the hand-back, the regular one before and after
@@ -103,9 +103,9 @@ def test_a_failed_passage_solve_falls_back_to_the_shifted_long_plan(monkeypatch)
     for _ in range(10):
         result = controller.step(x, y_t)
         x = result.states[1]
-        if result.escape == "passage":
+        if result.search.phase == "passage":
             break
-    assert result.escape == "passage", "the passage mode was not entered"
+    assert result.search.phase == "passage", "the passage mode was not entered"
     previous = result.inputs.copy()
     nlp = controller.passage.nlp
     real = nlp.solve
@@ -118,7 +118,7 @@ def test_a_failed_passage_solve_falls_back_to_the_shifted_long_plan(monkeypatch)
     failed = controller.step(x, y_t)
     assert failed.status == "fallback_shift" and failed.horizon == controller.passage.horizon
     np.testing.assert_array_equal(failed.u, previous[1])  # the long plan's next input
-    assert failed.escape == "passage" and controller.passage.active
+    assert failed.search.phase == "passage" and controller.memory.passage
     monkeypatch.setattr(nlp, "solve", real)
     assert controller.step(failed.states[1], y_t).status == "ok"  # and on with the long plan
 
@@ -152,9 +152,9 @@ def test_nlp_builds_counts_the_long_nlp_and_a_passage_adds_none(monkeypatch):
     controller.set_regions([Ellipse(*VDP_0100["ellipse"])])
     for _ in range(12):  # the stall escape's 3 guesses, one per sample, then the passage
         x = controller.step(x, y_t).states[1]
-        if controller.passage.active:
+        if controller.memory.passage:
             break
-    assert controller.passage.active and len(constructed) == controller.nlp_builds == 8
+    assert controller.memory.passage and len(constructed) == controller.nlp_builds == 8
 
 
 @pytest.mark.parametrize("changes, message", [

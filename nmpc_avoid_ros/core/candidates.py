@@ -16,8 +16,7 @@ state, where x2 = 0) nothing is tried.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import casadi as ca
@@ -26,8 +25,8 @@ import numpy as np
 from .models import Model
 from .nlp import Buffered, NlpBase
 from .regions import Region
+from .search import Candidate, Start
 from .settings import ControllerSettings
-from .step_result import attempt
 from .warm_start import straight_line
 
 #: points on the steady-state segment from y_a to the target where blocking is checked
@@ -280,62 +279,6 @@ class EscapeGuesses:
         return states
 
 
-@dataclass
-class Solution:
-    """A solver result: w [n_w], multipliers, which NLP solved it, its cost and predicted depth."""
-
-    w: np.ndarray
-    lam_x: np.ndarray
-    lam_g: np.ndarray
-    nlp: NlpBase
-    solved: bool
-    cost: float
-    depth: float
-    label: str = "shifted"
-
-
-#: a candidate may predict at most this much penetration beyond the shifted plan's (region g units)
-DEPTH_ALLOWANCE = 1e-4
-
-
-def plan_cost(nlp: NlpBase, w: np.ndarray, par: np.ndarray) -> float:
-    """V_o + V_a + tracking of the plan w (the paper's cost, with the penalty's max(0, g)^2)."""
-    return float(sum(float(term[0]) for term in nlp.terms(w, par)))
-
-
-def lowest_cost(nlp: NlpBase, x: np.ndarray, par: np.ndarray, base: Solution, guesses: Sequence[Guess],
-                time_left: float, feasibility_tolerance: float, clear_depth: float = math.inf
-                ) -> tuple[Solution, list[str], float]:
-    """Solve from each guess while time is left; the lowest-cost usable plan, base included.
-
-    A candidate counts when it satisfies the hard constraints (solved, or violation below the
-    tolerance) and predicts no more penetration than the base plan (+ DEPTH_ALLOWANCE): an escape
-    must not buy progress with penetration. When the base plan itself predicts penetration beyond
-    `clear_depth`, a plan that stays within `clear_depth` wins over any that does not, whatever their
-    costs (the soft penalty may price a squeeze through two regions below a detour; the controller
-    must not). Returns (best, one line per candidate tried, seconds).
-    """
-    def rank(cost: float, depth: float) -> tuple[bool, float]:
-        return (base.depth > clear_depth and depth > clear_depth, cost)
-
-    best, report, spent = base, [], 0.0
-    slowest = 0.0  # a solve's own wall-time limit is fixed at build: start one only if it is likely to fit
-    for guess in guesses:
-        if spent + slowest >= time_left:
-            report.append(f"{guess.label}: not tried (sample budget spent)")
-            continue
-        candidate, line, seconds = solve_guess(nlp, x, par, guess, feasibility_tolerance)
-        spent += seconds
-        slowest = max(slowest, seconds)
-        report.append(line)
-        if candidate is None:
-            continue
-        if rank(candidate.cost, candidate.depth) < rank(best.cost, best.depth) and \
-                candidate.depth <= base.depth + DEPTH_ALLOWANCE:
-            best = candidate
-    return best, report, spent
-
-
 def guess_batch(guesses: Sequence[Guess], start: int, per_sample: int) -> tuple[list[Guess], int]:
     """The guesses to solve this sample: `per_sample` of them from index `start` (all if per_sample is 0),
     and how many remain after them. A start past the end (the list shrank) starts over."""
@@ -353,16 +296,17 @@ def guess_w(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess) -> np.nd
     return nlp.fill_slacks(layout.join_w(guess.inputs, guess.states, guess.y_a, rest, x0=x), par)
 
 
-def solve_guess(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess, feasibility_tolerance: float
-                ) -> tuple[Solution | None, str, float]:
-    """Solve from one guess (zero multipliers): the plan if it satisfies the hard constraints (solved,
-    or violation below the tolerance) with its cost and predicted depth, else None; one report line;
-    the solver's wall time in s."""
-    layout = nlp.layout
-    result = attempt(nlp, guess_w(nlp, x, par, guess), par, np.zeros(layout.n_w), np.zeros(nlp.lbg.size),
-                     nlp.settings.max_iterations, feasibility_tolerance)
-    if not result.usable:
-        return None, f"{guess.label}: unusable ({result.solver_status})", result.solve_time
-    cost, depth = plan_cost(nlp, result.w, par), nlp.max_depth(result.w, par)
-    return (Solution(result.w, result.lam_x, result.lam_g, nlp, result.solved, cost, depth, guess.label),
-            f"{guess.label}: cost {cost:.6g}, depth {depth:.2g}", result.solve_time)
+def guess_start(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess, label: str | None = None) -> Start:
+    """The guess as a search Start of `nlp` (zero multipliers, the regular iteration budget)."""
+    return Start(label or guess.label, nlp, guess_w(nlp, x, par, guess), np.zeros(nlp.layout.n_w),
+                 np.zeros(nlp.lbg.size), nlp.settings.max_iterations)
+
+
+#: an escape candidate may predict at most this much penetration beyond the base plan's (region g units)
+DEPTH_ALLOWANCE = 1e-4
+
+
+def escape_admission(base: Candidate) -> Callable[[Candidate], str]:
+    """The escape's admission rule for `search`: a candidate may not buy progress with penetration (no
+    more predicted depth than the base plan's + DEPTH_ALLOWANCE)."""
+    return lambda candidate: "" if candidate.depth <= base.depth + DEPTH_ALLOWANCE else "penetrates more"

@@ -26,6 +26,7 @@ from .errors import ConfigError
 from .metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
 from .models import Model
 from .regions import Region
+from .search import SearchReport
 from .settings import ControllerSettings
 from .step_result import StepResult
 
@@ -231,7 +232,7 @@ class ClosedLoopRun:
     info: dict = field(default_factory=dict)
     regions: list[tuple[Region, ...]] = field(default_factory=list)  # [K] the set in force at each sample
     stopped: str | None = None  # why the loop ended early (see Trajectory), None if it ran every sample
-    escapes: list[str] = field(default_factory=list)  # [K] StepResult.escape ('' where none was tried)
+    searches: list[SearchReport] = field(default_factory=list)  # [K] StepResult.search (core/search.py)
     # [K] StepResult.predicted_violation: of the applied fallback or bounded-violation input, else NaN
     predicted_violations: list[float] = field(default_factory=list)
     certificate: list[dict] = field(default_factory=list)  # [K] CertificateSample.as_dict() per sample
@@ -244,7 +245,7 @@ class ClosedLoopRun:
         return cls(run.x, run.u, np.array([r.y_a for r in res]).reshape(K, -1), run.targets, run.solve_time,
                    run.iterations, [r.status for r in res], [r.solver_status for r in res],
                    np.array([(r.offset_cost, r.avoidance_cost, r.tracking_cost) for r in res]).reshape(K, 3),
-                   run.sample_time, dict(info or {}), run.regions, run.stopped, [r.escape for r in res],
+                   run.sample_time, dict(info or {}), run.regions, run.stopped, [r.search for r in res],
                    [r.predicted_violation for r in res])
 
     def to_json(self) -> dict:

@@ -1,13 +1,20 @@
-"""The NMPC controller: one bounded solve per sample, shifted warm start, escape and fallback.
+"""The NMPC controller: one sample = prepare -> one search over ordered starts -> apply or fall back -> guard.
 
-Escape (core/candidates.py): when y_a has stalled in front of a region that covers the steady
-states on the way to the target, more initial guesses are solved and the lowest-cost plan is kept;
-when they find nothing better, the passage mode (core/passage.py) tries the same problem with the
-longer horizon `escape_horizon` and, once it plans past the region, solves that one until the
-state rests beyond it.
-Fallback (core/fallback.py, docs/design.md): when a solve fails or its budget runs out without a
-usable iterate, the input among the shifted plan, u_a of the last plan, the safe input and a short
-recovery solve that predicts the least violation over the next samples.
+`NmpcController.step` reads as the sample does (docs/design.md, "The sample"):
+
+* prepare: validate x and y_t, track y_t's nearest reachable output (core/projection.py), pack the
+  parameters, set the deadline of the sample's solver calls (core/worker.py);
+* search (core/search.py, one budget rule and one ranking): the regular starts (the shifted plan;
+  a cold start's resting plan, straight line and reference; a budget-cut iterate continued; the
+  passage mode's long plan), then, from the plan found, the local-minimum escape guesses (a plan
+  that stalls in front of a blocking region, or predicts penetration: core/candidates.py) or the
+  passage NLP's guesses (core/passage.py);
+* apply the best plan, or fall back (core/fallback.py: the shifted plan, u_a, the safe input or a
+  recovery solve, whichever predicts the least violation);
+* guard: a plan that still predicts penetration gives way to the least-violating input.
+
+What carries over between samples is one SampleMemory (core/memory.py); what the search did is the
+result's SearchReport.
 """
 
 from __future__ import annotations
@@ -18,19 +25,21 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .candidates import EscapeGuesses, Solution, guess_batch, lowest_cost, plan_cost
+from .candidates import EscapeGuesses, escape_admission, guess_batch, guess_start
 from .errors import ConfigError, InputError
-from .fallback import VIOLATION_TOLERANCE, FallbackSelector
-from .models import Model, make_model
+from .fallback import FallbackSelector
+from .memory import Sample, SampleMemory
+from .models import Model
 from .nlp import SEARCH_SHARE, NlpBase, TrackingNlp
 from .passage import Passage
 from .projection import TargetProjection
 from .regions import Region
+from .search import VIOLATION_TOLERANCE, Candidate, SearchReport, Start, search
 from .settings import RUNTIME_FIELDS, ControllerSettings
-from .stagewise import COLD_START_ITERATIONS, StagewiseNlp
+from .stagewise import COLD_START_ITERATIONS, make_nlp
 from .status import StepStatus
-from .step_result import Attempt, Plan, StepResult, attempt, validate_vector
-from .tiers import Tiers
+from .step_result import Plan, StepResult, validate_vector
+from .tiers import TieredNlp
 from .warm_start import initial_guess
 from .worker import SolveWorker
 
@@ -46,18 +55,6 @@ TIME_BOUND_MARGIN = 0.05
 
 #: the reference's time budget for a cold start (no previous plan): this multiple of max_solve_time
 COLD_START_TIME_FACTOR = 10.0
-
-
-def make_nlp(settings: ControllerSettings, model: Model | None = None) -> NlpBase:
-    """The formulation of the settings' solver path: multiple shooting (ipopt) or stage-wise."""
-    if settings.solver == "ipopt":
-        return TrackingNlp(settings, model)
-    model = model or make_model(settings.model)
-    if model.steady_state is None:
-        # the stage-wise paths carry y_a as a state and need x_a = g_x(y_a) in closed form
-        raise ConfigError(f"solver {settings.solver!r} needs a closed-form steady state, which model "
-                          f"{model.name!r} has not (its heading at rest is free): use solver 'ipopt'")
-    return StagewiseNlp(settings, model)
 
 
 class NmpcController:
@@ -87,21 +84,8 @@ class NmpcController:
         self._moving = False
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
-        self._plan: Plan | None = None
-        # the last iterate of a budget-cut solve that could not be applied: the next sample
-        # continues the optimisation from it (shifted) instead of starting over
-        self._pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        # a warm solve of the fast path failed outright (no usable iterate, no budget cut to go
-        # on from): the next sample re-seeds through the cold-start solvers, else the fast path
-        # can stall on its own shifted guess sample after sample (measured in the campaign)
-        self._reseed = False
+        self.memory = SampleMemory()
         self.escape = EscapeGuesses(self.cold_nlp or self.nlp, self.model, self.settings)
-        # samples to wait before the next escape attempt (one that found nothing better)
-        self._escape_wait = 0
-        # with escape_guesses_per_sample: the index of the next escape guess to solve (its batch)
-        self._escape_next = 0
-        self._overrides = 0  # consecutive samples whose avoidable plan penetration was overridden
-        self._start_report: list[str] = []  # a cold start's guesses on a tier, this sample (for `escape`)
         # the passage mode's NLP: the same problem with the longer horizon, built here once
         long_nlp = None
         if self.settings.escape_horizon:
@@ -109,15 +93,15 @@ class NmpcController:
                                 self.model)
         self.passage = Passage(long_nlp, self.nlp, self.model, self.settings)
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
-        self.tiers = Tiers(self.settings, self.model, self.nlp, make_nlp)
-        self._tier_slots: dict[int, np.ndarray] = {}  # static slots per tier NLP (id), packed once per region set
+        # the regular NLP solved on the smallest ellipse tier that holds the regions (core/tiers.py)
+        self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
         #: y_t -> its nearest reachable output y* (core/projection.py): the target the NLP tracks
         self.project_target = TargetProjection(self.settings, self.model)
         # every solver call of the search runs in a child that is abandoned at the sample's deadline
         # (core/worker.py): built last, so that the child holds every NLP
-        nlps = [self.nlp, self.cold_nlp, long_nlp, *(tier for _, tier in self.tiers.nlps)]
+        nlps = [self.nlp, self.cold_nlp, long_nlp, *(tier for _, tier in self.tiered.tiers)]
         self.worker = SolveWorker([nlp for nlp in nlps if nlp is not None])
         for nlp in nlps:
             if nlp is not None:
@@ -134,13 +118,13 @@ class NmpcController:
         built in the constructor: nothing at run time (a target, obstacles, mu, the weights, entering
         or leaving the passage mode) adds to it.
         """
-        parts = (self.nlp, self.cold_nlp, self.fallback, self.passage, self.tiers, self.project_target)
+        parts = (self.nlp, self.cold_nlp, self.fallback, self.passage, self.tiered, self.project_target)
         return sum(part.solver_builds for part in parts if part is not None)
 
     @property
     def active_nlp(self) -> NlpBase:
         """The NLP of the regular solve: the passage mode's long one while in it, else the solver path's."""
-        return self.passage.nlp if self.passage.active and self.passage.nlp is not None else self.nlp
+        return self.passage.nlp if self.memory.passage and self.passage.nlp is not None else self.nlp
 
     def nlp_of_horizon(self, horizon: int) -> NlpBase | None:
         """The regular or the passage NLP whose horizon is `horizon` (None if neither)."""
@@ -156,26 +140,19 @@ class NmpcController:
         """Replace the obstacle regions (RegionError if they do not fit the slots; nothing changes then)."""
         slots = self.nlp.slot_layout.pack(list(regions), self.nlp.output_frame_available, predict=False)
         self._regions, self._slots = tuple(regions), slots
-        self._tier_slots = {}
+        self.tiered.set_regions(self._regions)
         self._moving = any(r.moving for r in self._regions)
 
-    def slot_values(self, time: float | None = None, nlp: NlpBase | None = None) -> np.ndarray:
-        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s), in the slot
-        layout of `nlp` (default: the regular NLP; else an ellipse tier, core/tiers.py).
+    def slot_values(self, time: float | None = None) -> np.ndarray:
+        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s).
 
         With `predict_obstacles` on, moving regions are placed where they are at `time` and
         predicted stage by stage (time None: each pose counts as valid at x(0)); off, every region
         stays where it was at its stamp. Static regions only: the slots packed once per region set.
         """
-        nlp = nlp or self.nlp
         if self._moving and self.settings.predict_obstacles:
-            return nlp.slot_layout.pack(list(self._regions), nlp.output_frame_available, time)
-        if nlp is self.nlp:
-            return self._slots
-        if id(nlp) not in self._tier_slots:
-            self._tier_slots[id(nlp)] = nlp.slot_layout.pack(list(self._regions), nlp.output_frame_available,
-                                                             predict=False)
-        return self._tier_slots[id(nlp)]
+            return self.nlp.slot_layout.pack(list(self._regions), self.nlp.output_frame_available, time)
+        return self._slots
 
     def set_keep_in_active(self, active: Sequence[bool]) -> None:
         """Switch the configured algebraic regions on or off (one flag per `keep_in` entry)."""
@@ -212,19 +189,17 @@ class NmpcController:
         """The next step's time bound, s: max_solve_time, or for a cold start (no plan yet, or a re-seed
         through the cold-start solvers) COLD_START_TIME_FACTOR times it. The search's solver calls end by
         SEARCH_SHARE of it (core/worker.py), the fallback's recovery solve within the rest."""
-        cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed)
-        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if cold else 1.0)
+        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if self._cold() else 1.0)
+
+    def _cold(self) -> bool:
+        """The next sample starts cold: a fast path without a plan (or re-seeding), nothing to continue."""
+        mem = self.memory
+        return self.cold_nlp is not None and mem.pending is None and (mem.plan is None or mem.reseed) and \
+            not mem.passage
 
     def reset(self) -> None:
-        """Forget the last plan (the next step starts cold)."""
-        self._plan = None
-        self._pending = None
-        self._reseed = False
-        self._escape_wait = 0
-        self._escape_next = 0
-        self._overrides = 0
-        self.passage.active = self.passage.due = False
-        self.passage.next_guess = 0
+        """Forget everything carried between samples (the next step starts cold)."""
+        self.memory = SampleMemory()
 
     def parameters(self, x: np.ndarray, y_t: np.ndarray, time: float | None = None) -> np.ndarray:
         """The NLP parameter vector for state x [n] measured at `time` (s) and target y_t [p] with the
@@ -241,11 +216,28 @@ class NmpcController:
         """Solve for the measured state x [n] and target y_t [p]; regions replace the current ones if given.
 
         `time` (s, the clock of the regions' stamps) is when x was measured: moving regions are
-        predicted from it (see `slot_values`).
+        predicted from it (see `slot_values`). Returns within `sample_budget()` + TIME_BOUND_MARGIN.
 
         Raises InputError for a wrong-size or non-finite x or y_t and RegionError for regions that
         do not fit; the controller's state is unchanged then.
         """
+        sample = self._prepare(x, y_t, regions, time)
+        report = SearchReport()
+        try:
+            best, last = self._search(sample, report)
+        finally:
+            self.worker.deadline = math.inf  # a solve outside a sample (tools, tests) has no deadline
+        if best is None:
+            result = self._fall_back(sample, last)
+        else:
+            result = self._guard(sample, best, self._apply(sample, best, report))
+        result.search, result.target = report, sample.y_t
+        result.solve_time = sample.seconds
+        return result
+
+    def _prepare(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None,
+                 time: float | None) -> Sample:
+        """Validate, project the target, pack the parameters and set the solver calls' deadline."""
         begin = clock.perf_counter()
         x = validate_vector("state", x, self.model.n)
         y_t = validate_vector("target", y_t, self.model.p)
@@ -253,185 +245,224 @@ class NmpcController:
             raise InputError(f"time must be finite seconds, got {time}")
         if regions is not None:
             self.set_regions(regions)
-        s = self.settings
         y_t = self.project_target(y_t)
-        par = self.parameters(x, y_t, time)
-        self.worker.deadline = begin + SEARCH_SHARE * self.sample_budget()
-        if not self.in_solve_domain(x):
-            result = self._fallback(x, par, OUTSIDE_SOLVE_DOMAIN, 0, 0.0, False, recover=False)
-            result.target = y_t
-            return result
-        previous_y_a = None if self._plan is None else self._plan.y_a.copy()
-        escape = "passage" if self.passage.active else ""
-        if self.passage.active and self.passage.can_hand_back(self._plan, self.nlp.layout.horizon):
-            # the long plan reaches its x_a within N samples (at rest beyond the region at the latest):
-            # its first N stages are a plan of the regular NLP, which takes over
-            self._plan, self._pending, escape = self.passage.hand_back(self._plan, self.nlp), None, "passage ended"
-        self._start_report = []
-        attempt = self._solve(x, y_t, par, time)
-        escape = "; ".join(self._start_report) or escape
-        if not attempt.usable:
-            self._pending = (attempt.w, attempt.lam_x, attempt.lam_g) if (
-                attempt.finite and attempt.budget_cut and attempt.nlp is self.active_nlp) else None
-            self._reseed = self.cold_nlp is not None and self._pending is None and not self.passage.active
-            result = self._fallback(x, par, attempt.solver_status, attempt.iterations, attempt.solve_time,
-                                    attempt.budget_cut)
-            result.escape, result.horizon, result.target = escape, attempt.nlp.layout.horizon, y_t
-            return result
-        self._pending = None
-        self._reseed = False
-        # the plan's predicted depth, once: the checks below and the escape's base read it (mu = 0: no
-        # avoidance, left unknown until an escape needs it)
-        depth = attempt.nlp.max_depth(attempt.w, par) if s.mu > 0 else math.nan
-        best = Solution(attempt.w, attempt.lam_x, attempt.lam_g, attempt.nlp, attempt.solved, math.nan, depth)
-        solve_time = attempt.solve_time
-        # a plan that predicts penetration is a local optimum of the penalty (x_a at an ellipse's
-        # centre, where its gradient vanishes; a squeeze between two regions): look for one that is clear
-        # (in the passage mode the long plan goes on: no guesses; the mode ends as above)
-        penetrating = s.mu > 0 and self.escape.available and not self.passage.active and depth > VIOLATION_TOLERANCE
-        if self.passage.active:
-            pass
-        elif penetrating or self._escape_due(best, previous_y_a, y_t, par):
-            best, tried, spent = self._escape(x, y_t, par, best, s.max_solve_time - solve_time, penetrating, time)
-            solve_time += spent
-            escape = f"{best.label}; tried: " + "; ".join(tried)
-        elif self.passage.due:
-            best, tried, spent = self._try_passage(x, y_t, par, best, previous_y_a, s.max_solve_time - solve_time)
-            solve_time += spent
-            escape = f"{best.label}; tried: " + "; ".join(tried) if tried else escape
-        lam_x, lam_g = best.lam_x, best.lam_g
+        self.tiered.set_time(time, self.settings.predict_obstacles)
+        deadline = begin + SEARCH_SHARE * self.sample_budget()
+        self.worker.deadline = deadline
+        return Sample(x, y_t, self.parameters(x, y_t, time), time, deadline, self.in_solve_domain(x))
+
+    def _search(self, sample: Sample, report: SearchReport) -> tuple[Candidate | None, Candidate | None]:
+        """The sample's search: the regular starts, then the escape or the passage guesses from the plan
+        found. Returns (the best plan or None, the regular search's last candidate)."""
+        mem, s = self.memory, self.settings
+        if not sample.in_domain:
+            report.phase = "no_solve"
+            return None, None
+        previous_y_a = None if mem.plan is None else mem.plan.y_a.copy()
+        if mem.passage and self.passage.can_hand_back(mem.plan, self.nlp.layout.horizon):
+            # the long plan reaches its x_a within N samples: its first N stages are a regular plan
+            mem.plan, mem.pending, mem.passage = self.passage.hand_back(mem.plan, self.nlp), None, False
+            report.phase = "passage_ended"
+        starts, phase = self._regular_starts(sample)
+        report.phase = "passage_ended" if report.phase == "passage_ended" else phase
+        best, last, spent = search(starts, sample.par, sample.time_left(), report, phase, s.feasibility_tolerance,
+                                   stop_at_clear=True)
+        sample.seconds += spent
+        sample.regular = best or last
+        if best is None or mem.passage:
+            return best, last
+        penetrating = s.mu > 0 and self.escape.available and best.depth > VIOLATION_TOLERANCE
+        if penetrating or self._escape_due(best, previous_y_a, sample):
+            best = self._escape(sample, best, penetrating, report)
+        elif mem.passage_due:
+            best = self._try_passage(sample, best, previous_y_a, report)
+        return best, last
+
+    def _regular_starts(self, sample: Sample) -> tuple[list[Start], str]:
+        """The sample's first starts and their phase: the passage mode's shifted long plan; a budget-cut
+        iterate continued; a cold start's guesses (on an ellipse tier: the resting plan, then the straight
+        line; then the SQP path itself; then the reference, core/tiers.py and docs/design.md); or the
+        shifted plan (on the tier that holds the regions)."""
+        mem, s, x, y_t = self.memory, self.settings, sample.x, sample.y_t
+        if mem.passage:
+            return [self._start("passage", self.active_nlp, sample, s.max_iterations)], "passage"
+        if mem.pending is not None:
+            return [self._start("continued", self.nlp, sample, s.max_iterations)], "continue"
+        if not self._cold():
+            label = "straight" if mem.plan is None else "shifted"
+            return [self._start(label, self.tiered, sample, s.max_iterations)], "warm"
+        budget = max(s.max_iterations, COLD_START_ITERATIONS)
+        starts = []
+        if self.tiered.tier is not None and mem.plan is None and self.escape.available:
+            starts = [guess_start(self.tiered, x, sample.par, guess) for guess in self.escape.cold_guesses(x, y_t)]
+            for start in starts:
+                start.budget, start.cold = budget, True
+        # SQP paths try a cold start themselves (cheap, and it works on small problems); FATROP fails
+        # slowly there (hundreds of ms): the reference solves it
+        if s.solver.startswith("sqp"):
+            starts.append(self._start("straight" if mem.plan is None else "shifted", self.nlp, sample, budget, True))
+        starts.append(self._start("reference", self.cold_nlp, sample, budget, True))
+        return starts, "cold"
+
+    def _start(self, label: str, nlp: NlpBase, sample: Sample, budget: int, cold: bool = False) -> Start:
+        """A start of `nlp` from the warm-start rules (core/warm_start.py) at this sample."""
+        regular = nlp.regular if isinstance(nlp, TieredNlp) else nlp
+        w0, lam_x0, lam_g0 = initial_guess(regular, sample.x, sample.y_t, self.memory.plan, self.memory.pending,
+                                           self.settings, self.model, keep_duals=regular is self.active_nlp)
+        return Start(label, nlp, regular.fill_slacks(w0, sample.par), lam_x0, lam_g0, budget, cold)
+
+    def _escape_due(self, base: Candidate, previous_y_a: np.ndarray | None, sample: Sample) -> bool:
+        """Try escape guesses now? Stalled in front of a blocking region, and not tried in vain just before."""
+        if self.memory.escape_wait > 0:
+            self.memory.escape_wait -= 1
+            return False
+        y_a = base.nlp.layout.split_w(base.w)[2]
+        return self.escape.should_try(y_a, previous_y_a, sample.y_t, sample.par)
+
+    def _escape(self, sample: Sample, base: Candidate, penetrating: bool, report: SearchReport) -> Candidate:
+        """The lowest-cost plan among the base and the escape guesses (for a `penetrating` base: a clear
+        plan first); none may predict more penetration than the base (candidates.escape_admission)."""
+        mem, s, x = self.memory, self.settings, sample.x
+        # FATROP solves the guesses itself, on the tier that holds the regions (measured on a 4-ellipse
+        # van der Pol scene: the same plans, 12-14 ms for three guesses); the SQP paths stall from far
+        # guesses: the reference solves them
+        nlp = self.tiered if s.solver == "fatrop" else (self.cold_nlp or self.nlp)
+        y_a = base.nlp.layout.split_w(base.w)[2]
+        make = self.escape.penetration_guesses if penetrating else self.escape.guesses
+        guesses = make(x, y_a, sample.y_t, sample.par, self._regions)
+        # a penetrating plan is a safety matter: all its guesses now; a stall's may take several samples
+        batch, rest = (guesses, 0) if penetrating else guess_batch(guesses, mem.escape_next,
+                                                                    s.escape_guesses_per_sample)
+        report.phase = "escape"
+        best, _, spent = search([guess_start(nlp, x, sample.par, g) for g in batch], sample.par, sample.time_left(),
+                                report, "escape", s.feasibility_tolerance, base=base, admit=escape_admission(base))
+        sample.seconds += spent
+        report.kept = best.label
+        mem.escape_next = 0
+        if best is base and rest:  # the next batch on the next sample (still stalled: the base held)
+            mem.escape_next = len(guesses) - rest
+            report.more_next_sample = rest
+        elif best is base and not penetrating:  # nothing better here: do not try again every sample at rest
+            mem.escape_wait = ESCAPE_RETRY_SAMPLES
+            mem.passage_due, mem.passage_next = self.passage.available, 0  # the long horizon next sample
+        return best
+
+    def _try_passage(self, sample: Sample, base: Candidate, previous_y_a: np.ndarray | None,
+                     report: SearchReport) -> Candidate:
+        """The sample after a vain stall escape: if y_a is still stalled in front of the region, the
+        passage NLP's plan that passes it (entering the mode), else the base."""
+        mem, s = self.memory, self.settings
+        mem.passage_due = False
+        y_a = base.nlp.layout.split_w(base.w)[2]
+        if not self.escape.should_try(y_a, previous_y_a, sample.y_t, sample.par):
+            return base
+        starts, next_guess, rest = self.passage.starts(sample.x, sample.y_t, sample.par, base, self._regions,
+                                                       mem.passage_next, s.escape_guesses_per_sample)
+        report.phase, mem.passage_next = "passage_try", 0
+        entered, _, spent = search(starts, sample.par, sample.time_left(), report, "passage_try",
+                                   s.feasibility_tolerance, admit=self.passage.admit(base, sample.par))
+        sample.seconds += spent
+        if entered is None:
+            if rest:  # the next batch on the next sample
+                mem.passage_due, mem.passage_next, report.more_next_sample = True, next_guess, rest
+            else:  # every guess tried in vain
+                mem.escape_wait = ESCAPE_RETRY_SAMPLES
+            report.kept = base.label
+            return base
+        mem.passage = report.entered_passage = True
+        report.kept = entered.label
+        return entered
+
+    def _apply(self, sample: Sample, best: Candidate, report: SearchReport) -> StepResult:
+        """Keep `best` as the plan and answer its first input (status ok, or truncated for a budget-cut one)."""
+        mem = self.memory
+        mem.pending, mem.reseed = None, False
+        report.kept = report.kept or best.label
         active = self.active_nlp
-        if best.nlp is not active:  # solved by the reference: the fast path's multipliers start from zero
+        lam_x, lam_g = best.lam_x, best.lam_g
+        if best.nlp is not active:  # solved by another NLP (the reference, a tier): multipliers start from zero
             lam_x, lam_g = np.zeros(active.layout.n_w), np.zeros(active.lbg.size)
-        plan = self._accept(x, best.w, par, lam_x, lam_g, best.nlp)
+        U, X, y_a, _ = best.nlp.layout.split_w(best.w)
+        x_a, u_a = (v.copy() for v in best.nlp.steady(best.w))
+        costs = tuple(float(c[0]) for c in best.nlp.terms(best.w, sample.par))
+        mem.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
+        regular = sample.regular
         status = StepStatus.OK if best.solved else StepStatus.TRUNCATED
-        result = self._result(plan, x, 0, status, attempt.solver_status, attempt.iterations, solve_time,
-                              attempt.budget_cut)
-        result.escape, result.horizon, result.target = escape, best.nlp.layout.horizon, y_t
-        # a region the plan cannot avoid (e.g. one placed over the current state): the input that
-        # predicts the least violation, and say so; the cheap depth check first (mu = 0: no avoidance;
-        # every candidate an escape or the passage mode kept carries its own depth)
-        if s.mu > 0 and best.depth > VIOLATION_TOLERANCE:
-            self._bound_violation(x, par, result)
+        result = self._result(mem.plan, sample.x, 0, status, regular.solver_status, regular.iterations,
+                              regular.budget_cut)
+        result.horizon = best.nlp.layout.horizon
         return result
 
-    def _bound_violation(self, x: np.ndarray, par: np.ndarray, result: StepResult) -> None:
-        """Replace a plan that predicts penetration by the least-violating input (FallbackSelector.check_plan).
-
-        An avoidable penetration is overridden for at most N samples in a row, so that a plan the
-        solver keeps choosing is not held off for good (the plant would stand still).
-        """
-        choice = self.fallback.check_plan(x, par, result.inputs[:self.fallback.horizon])  # a long plan: its first N
-        if choice is None or (not choice.unavoidable and self._overrides >= self.nlp.layout.horizon):
-            self._overrides = 0
-            return
+    def _guard(self, sample: Sample, best: Candidate, result: StepResult) -> StepResult:
+        """A plan that predicts penetration (e.g. a region placed over the current state) gives way to the
+        input that predicts the least violation (FallbackSelector.check_plan), and says so. An avoidable
+        penetration is overridden for at most N samples in a row, so that a plan the solver keeps
+        choosing does not hold the plant still for good."""
+        mem = self.memory
+        if not (self.settings.mu > 0 and best.depth > VIOLATION_TOLERANCE):
+            return result
+        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:self.fallback.horizon])
+        if choice is None or (not choice.unavoidable and mem.overrides >= self.nlp.layout.horizon):
+            mem.overrides = 0
+            return result
         result.region_unavoidable = choice.unavoidable
         result.predicted_violation = choice.violation
         why = "region unavoidable from the current state" if choice.unavoidable else "plan predicts penetration"
         result.fallback_reason = f"{why}; {choice.reason}"
-        result.solve_time += choice.solve_time
+        sample.seconds += choice.solve_time
         if choice.kind != "plan":
-            self._overrides += not choice.unavoidable
+            mem.overrides += not choice.unavoidable
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
-
-    def _solve(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, time: float | None = None) -> Attempt:
-        """The sample's regular solve: the fast path from the shifted plan (cold: the cold-start solvers;
-        an ellipse tier where one holds the regions, core/tiers.py)."""
-        s = self.settings
-        cold = self.cold_nlp is not None and self._pending is None and (self._plan is None or self._reseed) and \
-            not self.passage.active
-        # not after a budget-cut sample (the regular NLP continues its iterate) nor in the passage mode
-        tier = None if self._pending is not None or self.passage.active else self.tiers.pick(self._regions)
-        if tier is not None and not cold and self._plan is not None:
-            # the regular NLP with fewer (empty) slots; the plan comes back in its layout
-            return self.tiers.solve(tier, self._initial_guess(x, y_t, tier)[0], x, par,
-                                    self.slot_values(time, tier), s)
-        elapsed = 0.0
-        if tier is not None and cold and self._plan is None and self.escape.available:
-            # no plan yet: the fast path on the tier (Tiers.cold_start)
-            result, self._start_report, elapsed = self.tiers.cold_start(
-                tier, self.escape.cold_guesses(x, y_t), x, par, self.slot_values(time, tier), s, VIOLATION_TOLERANCE)
-            if result is not None:
-                return result
-        # SQP paths try a cold start themselves first (cheap, and it works on small problems);
-        # FATROP fails slowly there (hundreds of ms), so it goes to the reference at once
-        if not cold:
-            nlps = [self.active_nlp]
-        elif s.solver.startswith("sqp"):
-            nlps = [self.nlp, self.cold_nlp]
-        else:
-            nlps = [self.cold_nlp]
-        # a cold start runs with the cold-start budget (StagewiseNlp.cold_solver, the reference's build)
-        budget = max(s.max_iterations, COLD_START_ITERATIONS) if cold else s.max_iterations
-        for nlp in nlps:
-            w0, lam_x0, lam_g0 = self._initial_guess(x, y_t, nlp)
-            result = attempt(nlp, nlp.fill_slacks(w0, par), par, lam_x0, lam_g0, budget, s.feasibility_tolerance, cold)
-            elapsed += result.solve_time
-            if result.usable:
-                break
-        result.solve_time = elapsed
         return result
 
-    def _escape_due(self, base: Solution, previous_y_a: np.ndarray | None, y_t: np.ndarray, par: np.ndarray) -> bool:
-        """Try escape guesses now? Stalled in front of a blocking region, and not tried in vain just before."""
-        if self._escape_wait > 0:
-            self._escape_wait -= 1
-            return False
-        y_a = base.nlp.layout.split_w(base.w)[2]
-        return self.escape.should_try(y_a, previous_y_a, y_t, par)
-
-    def _escape(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution, time_left: float,
-                penetrating: bool = False, time: float | None = None) -> tuple[Solution, list[str], float]:
-        """The lowest-cost plan among the base and the escape guesses (for a `penetrating` base: a
-        clear plan first, see candidates.lowest_cost)."""
-        # FATROP solves the guesses itself (measured on a 4-ellipse van der Pol scene: the same plans,
-        # 12-14 ms for three guesses); the SQP paths stall from far guesses: the reference solves them
-        nlp = self.nlp if self.settings.solver == "fatrop" else (self.cold_nlp or self.nlp)
-        base.cost = plan_cost(base.nlp, base.w, par)
-        if math.isnan(base.depth):
-            base.depth = base.nlp.max_depth(base.w, par)
-        y_a = base.nlp.layout.split_w(base.w)[2]
-        if penetrating:
-            guesses = self.escape.penetration_guesses(x, y_a, y_t, par, self._regions)
+    def _fall_back(self, sample: Sample, last: Candidate | None) -> StepResult:
+        """No usable plan: the candidate input predicting the least violation (core/fallback.py); the plan
+        ages by one. A budget-cut iterate of the regular NLP is continued next sample; a fast path whose
+        warm solve failed outright re-seeds through the cold-start starts."""
+        mem, x, par = self.memory, sample.x, sample.par
+        if last is not None:
+            regular = last.nlp.regular if isinstance(last.nlp, TieredNlp) else last.nlp
+            mem.pending = (last.w, last.lam_x, last.lam_g) if (
+                last.finite and last.budget_cut and regular is self.active_nlp) else None
+            mem.reseed = self.cold_nlp is not None and mem.pending is None and not mem.passage
+        status, iterations, budget_cut = (OUTSIDE_SOLVE_DOMAIN, 0, False) if last is None else (
+            last.solver_status, last.iterations, last.budget_cut)
+        plan = mem.plan
+        shifted = u_a = None
+        N = H = self.fallback.horizon  # the selector simulates N inputs: of a long plan, its first N
+        if plan is not None:
+            plan.age += 1
+            N = len(plan.inputs)
+            shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])[:H]
+            u_a = plan.u_a
+        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, sample.in_domain)
+        sample.seconds += choice.solve_time
+        if plan is not None and choice.kind in ("shift", "steady"):
+            result = self._result(plan, x, plan.age, StepStatus(f"fallback_{choice.kind}"), status, iterations,
+                                  budget_cut)
         else:
-            guesses = self.escape.guesses(x, y_a, y_t, par, self._regions)
-        # a penetrating plan is a safety matter: all its guesses now; a stall's may take several samples
-        batch, rest = (guesses, 0) if penetrating else guess_batch(guesses, self._escape_next,
-                                                                    self.settings.escape_guesses_per_sample)
-        tier = self.tiers.pick(self._regions) if nlp is self.nlp else None  # an ellipse tier solves them faster
-        guess_par = par if tier is None else self.tiers.parameters(par, self.slot_values(time, tier))
-        best, tried, spent = lowest_cost(tier or nlp, x, guess_par, base, batch, time_left,
-                                         self.settings.feasibility_tolerance, VIOLATION_TOLERANCE)
-        if tier is not None and best is not base:
-            best = self.tiers.regular_solution(best, x, par)
-        self._escape_next = 0
-        if best is base and rest:  # the next batch on the next sample (still stalled: the base held)
-            self._escape_next = len(guesses) - rest
-            tried.append(f"{rest} more next sample")
-        elif best is base and not penetrating:  # nothing better here: do not try again every sample while at rest
-            self._escape_wait = ESCAPE_RETRY_SAMPLES
-            self.passage.due = self.passage.available  # the long horizon next sample (its own budget)
-            self.passage.next_guess = 0
-        return best, tried, spent
+            nan_p = np.full(self.model.p, np.nan) if plan is None else plan.y_a.copy()
+            nan_n = np.full(self.model.n, np.nan) if plan is None else plan.x_a.copy()
+            u_a_out = choice.inputs[0].copy() if plan is None else plan.u_a.copy()
+            result = StepResult(choice.inputs[0].copy(), choice.states, choice.inputs.copy(), nan_p, nan_n, u_a_out,
+                                math.nan, math.nan, math.nan, StepStatus(f"fallback_{choice.kind}"), status,
+                                iterations, 0.0, budget_cut)
+        result.fallback_reason = choice.reason
+        result.predicted_violation = choice.violation
+        result.horizon = 0 if last is None else last.nlp.layout.horizon
+        return result
 
-    def _try_passage(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution,
-                     previous_y_a: np.ndarray | None, time_left: float) -> tuple[Solution, list[str], float]:
-        """The sample after a vain stall escape: if y_a is still stalled in front of the region, the
-        passage NLP's plan that passes it (entering the mode), else the base."""
-        self.passage.due = False
-        y_a = base.nlp.layout.split_w(base.w)[2]
-        if not self.escape.should_try(y_a, previous_y_a, y_t, par):
-            return base, [], 0.0
-        entered, tried, spent = self.passage.attempt(x, y_t, par, base, self._regions, time_left,
-                                                     self.settings.feasibility_tolerance,
-                                                     self.settings.escape_guesses_per_sample)
-        if entered is None:
-            if not self.passage.due:  # every guess tried in vain (else the next batch on the next sample)
-                self._escape_wait = ESCAPE_RETRY_SAMPLES
-            return base, tried, spent
-        self.passage.active = True
-        return entered, tried, spent
+    def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
+                budget_cut: bool) -> StepResult:
+        """The result of applying `plan` aged by `age` samples at state x (the solve time is set by `step`)."""
+        N = len(plan.inputs)  # the regular horizon, or the passage mode's
+        # into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond them seen)
+        inputs = np.clip(np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))]), self._input_lo,
+                         self._input_hi)
+        states = np.vstack([x, plan.states[age + 1:], np.tile(plan.x_a, (min(age, N), 1))])
+        return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
+                          *plan.costs, status, solver_status, iterations, 0.0, budget_cut)
 
     def coast(self) -> StepResult | None:
         """A sample without a new measurement: the next input of the last plan (then u_a).
@@ -441,28 +472,14 @@ class NmpcController:
         Status FALLBACK_SHIFT (or FALLBACK_STEADY once the plan is used up), solver status
         'no_new_state'.
         """
-        plan = self._plan
+        plan = self.memory.plan
         if plan is None:
             return None
         plan.age += 1
         N = len(plan.inputs)
         predicted = plan.states[plan.age] if plan.age <= N else plan.x_a
         status = StepStatus.FALLBACK_SHIFT if plan.age < N else StepStatus.FALLBACK_STEADY
-        return self._result(plan, predicted, plan.age, status, "no_new_state", 0, 0.0, False)
-
-    def _accept(self, x: np.ndarray, w: np.ndarray, par: np.ndarray, lam_x: np.ndarray, lam_g: np.ndarray,
-                nlp: NlpBase) -> Plan:
-        U, X, y_a, _ = nlp.layout.split_w(w)
-        x_a, u_a = (v.copy() for v in nlp.steady(w))
-        costs = tuple(float(c[0]) for c in nlp.terms(w, par))
-        self._plan = Plan(U.copy(), np.vstack([x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
-        return self._plan
-
-    def _initial_guess(self, x: np.ndarray, y_t: np.ndarray, nlp: NlpBase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The guess (w, lam_x, lam_g) for `nlp` at state x and target y_t (core/warm_start.py); the
-        plan's multipliers only where `nlp` is the one that made it."""
-        return initial_guess(nlp, x, y_t, self._plan, self._pending, self.settings, self.model,
-                             keep_duals=nlp is self.active_nlp)
+        return self._result(plan, predicted, plan.age, status, "no_new_state", 0, False)
 
     def set_safe_input(self, u: Sequence[float]) -> None:
         """The model's safe input [m], one of the fallback's candidates (InputError if malformed or
@@ -475,40 +492,3 @@ class NmpcController:
         if np.any(u < self._input_lo) or np.any(u > self._input_hi):
             raise InputError(f"safe_input {u.tolist()} is outside the input box")
         return u
-
-    def _fallback(self, x: np.ndarray, par: np.ndarray, solver_status: str, iterations: int, solve_time: float,
-                  budget_cut: bool, recover: bool = True) -> StepResult:
-        """The candidate input predicting the least violation (core/fallback.py); the plan ages by one."""
-        plan = self._plan
-        shifted = u_a = None
-        N = H = self.fallback.horizon  # the selector simulates N inputs: of a long plan, its first N
-        if plan is not None:
-            plan.age += 1
-            N = len(plan.inputs)
-            shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])[:H]
-            u_a = plan.u_a
-        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, recover)
-        solve_time += choice.solve_time
-        if plan is not None and choice.kind in ("shift", "steady"):
-            result = self._result(plan, x, plan.age, StepStatus(f"fallback_{choice.kind}"), solver_status, iterations,
-                                  solve_time, budget_cut)
-        else:
-            nan_p = np.full(self.model.p, np.nan) if plan is None else plan.y_a.copy()
-            nan_n = np.full(self.model.n, np.nan) if plan is None else plan.x_a.copy()
-            u_a_out = choice.inputs[0].copy() if plan is None else plan.u_a.copy()
-            result = StepResult(choice.inputs[0].copy(), choice.states, choice.inputs.copy(), nan_p, nan_n, u_a_out,
-                                math.nan, math.nan, math.nan, StepStatus(f"fallback_{choice.kind}"), solver_status,
-                                iterations, solve_time, budget_cut)
-        result.fallback_reason = choice.reason
-        result.predicted_violation = choice.violation
-        return result
-
-    def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
-                solve_time: float, budget_cut: bool) -> StepResult:
-        N = len(plan.inputs)  # the regular horizon, or the passage mode's
-        # into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond them seen)
-        inputs = np.clip(np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))]), self._input_lo,
-                         self._input_hi)
-        states = np.vstack([x, plan.states[age + 1:], np.tile(plan.x_a, (min(age, N), 1))])
-        return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
-                          *plan.costs, status, solver_status, iterations, solve_time, budget_cut)

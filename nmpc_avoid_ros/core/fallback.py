@@ -29,13 +29,11 @@ import numpy as np
 
 from .models import Model
 from .nlp import SEARCH_SHARE, NlpBase, problem_parts
+from .search import VIOLATION_TOLERANCE
 from .settings import ControllerSettings
 
 #: candidates in order of preference among equal predicted violations
 CANDIDATES = ("shift", "steady", "safe", "recovery")
-#: predicted violations up to this count as none (region g and state units): a plan's own penalty
-#: optimum predicts ~1e-4 of penetration, which must not lose to a recovery solve over rounding
-VIOLATION_TOLERANCE = 1e-3
 #: a solved plan predicting more penetration than this is replaced by a candidate that avoids the
 #: regions (see FallbackSelector.check_plan). The goal's bound: at 1e-2, campaign vdp-0336 applied
 #: plans that squeezed between an ellipse and |x1 x2| <= 2 at a keep-in depth of 1.1e-3 while an

@@ -30,16 +30,16 @@ again.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .candidates import EscapeGuesses, Solution, guess_batch, solve_guess
+from .candidates import EscapeGuesses, guess_batch, guess_start
 from .errors import ConfigError
-from .fallback import VIOLATION_TOLERANCE
 from .models import Model
 from .nlp import NlpBase
 from .regions import Region
+from .search import VIOLATION_TOLERANCE, Candidate, Start
 from .settings import ControllerSettings
 from .step_result import Plan
 
@@ -50,16 +50,14 @@ PASSAGE_REST = 5e-2
 
 
 class Passage:
-    """The long-horizon NLP, its escape guesses and whether the controller is in passage mode.
+    """The long-horizon NLP and its escape guesses (stateless: whether the controller is in the mode
+    lives in its SampleMemory, core/memory.py).
 
     `nlp` is None when `escape_horizon` is 0 (then nothing is ever tried).
     """
 
     def __init__(self, nlp: NlpBase | None, short: NlpBase, model: Model, settings: ControllerSettings) -> None:
         self.nlp = nlp
-        self.active = False  # in passage mode: the controller's plan is the long NLP's
-        self.due = False  # the short escape found nothing: try the long NLP on the next stalled sample
-        self.next_guess = 0  # with guesses per sample: the index of the next guess to solve
         self.horizon = 0 if nlp is None else nlp.layout.horizon
         self.guesses: EscapeGuesses | None = None
         if nlp is None:
@@ -81,43 +79,33 @@ class Passage:
         """Solvers the long NLP constructed (NmpcController.nlp_builds counts them)."""
         return 0 if self.nlp is None else self.nlp.solver_builds
 
-    def attempt(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Solution, regions: Sequence[Region],
-                time_left: float, feasibility_tolerance: float, per_sample: int = 0
-                ) -> tuple[Solution | None, list[str], float]:
-        """Solve the long NLP from the escape guesses while time is left (`per_sample` > 0: that many from
-        `next_guess` on; if none enters, the mode stays `due` for the next batch); the lowest-cost plan
-        that may enter the mode (see the module docstring), or None. Returns (plan, one line per guess,
-        seconds)."""
+    def starts(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Candidate, regions: Sequence[Region],
+               next_guess: int, per_sample: int) -> tuple[list[Start], int, int]:
+        """The long NLP's starts from the escape guesses (`per_sample` > 0: that many from `next_guess`
+        on), the index of the guess after them and how many guesses remain after them."""
+        assert self.nlp is not None and self.guesses is not None
+        y_a = base.nlp.layout.split_w(base.w)[2].copy()
+        guesses = self.guesses.guesses(x, y_a, y_t, par, regions)
+        batch, rest = guess_batch(guesses, next_guess, per_sample)
+        starts = [guess_start(self.nlp, x, par, guess, f"passage:{guess.label}") for guess in batch]
+        return starts, len(guesses) - rest, rest
+
+    def admit(self, base: Candidate, par: np.ndarray) -> Callable[[Candidate], str]:
+        """Why a long plan may not enter the mode ('' if it may): it penetrates, its offset cost is not
+        below PASSAGE_GAIN times the short plan's, or its y_a is not past the block."""
         assert self.nlp is not None and self.guesses is not None
         y_a = base.nlp.layout.split_w(base.w)[2].copy()
         offset = float(base.nlp.terms(base.w, par)[0][0])
-        guesses = self.guesses.guesses(x, y_a, y_t, par, regions)
-        batch, rest = guess_batch(guesses, self.next_guess, per_sample)
-        self.due, self.next_guess = False, 0
-        best, report, spent, slowest = None, [], 0.0, 0.0
-        for guess in batch:
-            if spent + slowest >= time_left:  # as in lowest_cost: start a solve only if it is likely to fit
-                report.append(f"passage {guess.label}: not tried (sample budget spent)")
-                continue
-            candidate, line, seconds = solve_guess(self.nlp, x, par, guess, feasibility_tolerance)
-            spent, slowest = spent + seconds, max(slowest, seconds)
-            if candidate is None:
-                report.append(f"passage {line}")
-                continue
-            long_offset = float(self.nlp.terms(candidate.w, par)[0][0])
-            y_long = self.nlp.layout.split_w(candidate.w)[2]
-            why = ("penetrates" if candidate.depth > VIOLATION_TOLERANCE else
-                   "offset not lower" if long_offset >= PASSAGE_GAIN * offset else
-                   "y_a not past the block" if not self.guesses.crosses_block(y_a, y_long, par) else "")
-            report.append(f"passage {line}, offset {long_offset:.4g}" + (f" ({why})" if why else ""))
-            if not why and (best is None or candidate.cost < best.cost):
-                best = candidate
-        if best is not None:
-            best.label = f"passage:{best.label}"
-        elif rest:
-            self.due, self.next_guess = True, len(guesses) - rest
-            report.append(f"passage: {rest} more next sample")
-        return best, report, spent
+        nlp, guesses = self.nlp, self.guesses
+
+        def why(candidate: Candidate) -> str:
+            long_offset = float(nlp.terms(candidate.w, par)[0][0])
+            y_long = nlp.layout.split_w(candidate.w)[2]
+            return ("penetrates" if candidate.depth > VIOLATION_TOLERANCE else
+                    "offset not lower" if long_offset >= PASSAGE_GAIN * offset else
+                    "y_a not past the block" if not guesses.crosses_block(y_a, y_long, par) else "")
+
+        return why
 
     def can_hand_back(self, plan: Plan | None, horizon: int) -> bool:
         """The long plan, seen from now, stays within PASSAGE_REST of its x_a from stage `horizon` - 1 on:
@@ -129,9 +117,8 @@ class Passage:
         return float(np.max(np.abs(states[plan.age + horizon:] - plan.x_a))) <= PASSAGE_REST
 
     def hand_back(self, plan: Plan, short: NlpBase) -> Plan:
-        """Leave the mode: the regular NLP's plan made of the long plan's first N stages (as of the last
-        sample, like any kept plan; x(N) = x_a), with zero multipliers."""
-        self.active = False
+        """The regular NLP's plan made of the long plan's first N stages (as of the last sample, like any
+        kept plan; x(N) = x_a), with zero multipliers: the mode ends with it."""
         N, a = short.layout.horizon, plan.age
         inputs, states = _padded(plan.inputs, plan.u_a, N), _padded(plan.states, plan.x_a, N)
         states = states[a:a + N + 1].copy()

@@ -30,7 +30,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .models import Model, make_model
-from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, check_sizes, depth_function, problem_parts
+from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp, check_sizes, depth_function, problem_parts
 from .settings import ControllerSettings
 
 #: iteration budget of a cold start (no previous plan), also in core/controller.py
@@ -224,3 +224,15 @@ class StagewiseNlp(NlpBase):
             lam_x[xs[k]] = lam_x[xs[src]]
             lam_g[gs[k]] = lam_g[gs[src]]
         return lam_x, lam_g
+
+
+def make_nlp(settings: ControllerSettings, model: Model | None = None) -> NlpBase:
+    """The formulation of the settings' solver path: multiple shooting (ipopt) or stage-wise."""
+    if settings.solver == "ipopt":
+        return TrackingNlp(settings, model)
+    model = model or make_model(settings.model)
+    if model.steady_state is None:
+        # the stage-wise paths carry y_a as a state and need x_a = g_x(y_a) in closed form
+        raise ConfigError(f"solver {settings.solver!r} needs a closed-form steady state, which model "
+                          f"{model.name!r} has not (its heading at rest is free): use solver 'ipopt'")
+    return StagewiseNlp(settings, model)

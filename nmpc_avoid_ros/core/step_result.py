@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
-from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase
+from .search import SearchReport
 from .status import StepStatus
 
 
@@ -32,11 +32,8 @@ class StepResult:
         solver_status: the solver's own return status.
         iterations: solver iterations; solve_time: wall time of the solve in s.
         budget_exhausted: True when the iteration or time budget cut the solve.
-        escape: '' unless local-minimum escape guesses were tried: which plan was kept
-            ('shifted' or the guess's label; 'passage:<label>' entering the passage mode,
-            core/passage.py) and one entry per guess tried; 'passage' for a sample in the passage
-            mode, 'passage ended' for the one that hands back to the regular horizon; for a start
-            solved on an ellipse tier, 'cold start: <kept guess>' and one entry per guess.
+        search: what the sample's search tried (core/search.py: phase, kept plan, one line per start);
+            `escape` renders it for people.
         horizon: stages of the NLP solved (or attempted) at this sample: the regular N, or
             escape_horizon in the passage mode (0: no solve, e.g. `coast`).
         fallback_reason: for a fallback, which candidate was applied and every candidate's
@@ -61,7 +58,7 @@ class StepResult:
     iterations: int
     solve_time: float
     budget_exhausted: bool = False
-    escape: str = ""
+    search: SearchReport = field(default_factory=SearchReport)
     fallback_reason: str = ""
     predicted_violation: float = math.nan
     region_unavoidable: bool = False
@@ -69,50 +66,13 @@ class StepResult:
     target: np.ndarray | None = None
 
     @property
+    def escape(self) -> str:
+        """The search report rendered for people (diagnostics); '' for an ordinary warm sample."""
+        return self.search.render()
+
+    @property
     def is_fallback(self) -> bool:
         return StepStatus(self.status).is_fallback
-
-
-@dataclass
-class Attempt:
-    """The outcome of the sample's regular solve (see NmpcController._solve)."""
-
-    w: np.ndarray
-    lam_x: np.ndarray
-    lam_g: np.ndarray
-    nlp: NlpBase
-    solver_status: str
-    iterations: int
-    solve_time: float
-    solved: bool
-    usable: bool
-    budget_cut: bool
-    finite: bool
-
-
-#: solver status of an attempt whose guess or parameters were not finite (no solver was called)
-NON_FINITE_GUESS = "non_finite_guess"
-
-
-def attempt(nlp: NlpBase, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, budget: int,
-            feasibility_tolerance: float, cold: bool = False) -> Attempt:
-    """One solver call of `nlp` from the guess w0 [n_w] (slacks filled) and what it gave.
-
-    `budget` is the call's iteration budget: an unsolved call that used it all was cut by it. An
-    unconverged iterate (budget cut, or a stalled line search) is usable when it is feasible: the
-    paper's recursive feasibility needs feasibility, not optimality.
-    """
-    if not (np.all(np.isfinite(w0)) and np.all(np.isfinite(par))):
-        # never handed to a solver: FATROP loops without end on a NaN guess (measured)
-        return Attempt(w0, lam_x0, lam_g0, nlp, NON_FINITE_GUESS, 0, 0.0, False, False, False, False)
-    w, lam_x, lam_g, stats, solve_time = nlp.solve(w0, par, lam_x0, lam_g0, cold=cold)
-    solver_status = str(stats.get("return_status", "unknown"))
-    iterations = int(stats.get("iter_count", -1))
-    solved = solver_status in SOLVED
-    budget_cut = solver_status in BUDGET_EXHAUSTED or (not solved and iterations >= budget)
-    finite = bool(np.all(np.isfinite(w)))
-    usable = finite and (solved or nlp.violation(w, par) <= feasibility_tolerance)
-    return Attempt(w, lam_x, lam_g, nlp, solver_status, iterations, solve_time, solved, usable, budget_cut, finite)
 
 
 @dataclass

@@ -239,10 +239,10 @@ def robustness_section(s: Scored) -> dict[str, Any]:
         # the first sample's least-violating input still predicts a violation: a region cannot be
         # avoided from x0 although x0 is in X_N (whose constraints are the hard ones alone)
         "unavoidable_at_start": bool(run.predicted_violations and run.predicted_violations[0] > 1e-3),
-        "escapes_tried": sum("tried:" in e for e in run.escapes),
-        "escapes_taken": sum("tried:" in e and not e.startswith("shifted") for e in run.escapes),
-        "passages": sum(e.startswith("passage:") for e in run.escapes),
-        "passage_samples": sum(e == "passage" or e.startswith("passage:") for e in run.escapes),
+        "escapes_tried": sum(r.guesses_tried for r in run.searches),
+        "escapes_taken": sum(r.guess_taken for r in run.searches),
+        "passages": sum(r.entered_passage for r in run.searches),
+        "passage_samples": sum(r.phase == "passage" or r.entered_passage for r in run.searches),
     }
 
 

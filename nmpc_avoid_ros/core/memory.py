@@ -1,0 +1,60 @@
+"""The sample's records: what carries over to the next sample (SampleMemory, replaced whole by
+`NmpcController.reset`) and what one sample works on (Sample)."""
+
+from __future__ import annotations
+
+import time as clock
+from dataclasses import dataclass
+
+import numpy as np
+
+from .search import Candidate
+from .step_result import Plan
+
+
+@dataclass
+class SampleMemory:
+    """The controller's state between samples.
+
+    plan: the last accepted plan (None: the next sample starts cold).
+    pending: the last iterate (w, lam_x, lam_g) of a budget-cut solve that could not be applied: the
+        next sample continues the optimisation from it (shifted) instead of starting over.
+    reseed: a warm solve of a fast path failed outright (no usable iterate, no budget cut to go on
+        from): the next sample re-seeds through the cold-start starts, else the fast path can stall on
+        its own shifted guess sample after sample (measured in the campaign).
+    escape_wait: samples to wait before the next escape attempt (one found nothing better).
+    escape_next: with escape_guesses_per_sample, the index of the next escape guess to solve.
+    overrides: consecutive samples whose avoidable plan penetration was overridden.
+    passage: in the passage mode (the plan is the long NLP's, core/passage.py).
+    passage_due: the short escape found nothing: try the long NLP on the next stalled sample.
+    passage_next: with guesses per sample, the index of the next passage guess to solve.
+    """
+
+    plan: Plan | None = None
+    pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    reseed: bool = False
+    escape_wait: int = 0
+    escape_next: int = 0
+    overrides: int = 0
+    passage: bool = False
+    passage_due: bool = False
+    passage_next: int = 0
+
+
+@dataclass
+class Sample:
+    """One sample after `prepare`: state x [n], tracked target y_t [p] (projected), parameters, the
+    time of x (s, the regions' clock), the deadline of its solver calls (time.perf_counter s), whether
+    x is in the solve domain; then what the search adds: its solver seconds and the regular candidate."""
+
+    x: np.ndarray
+    y_t: np.ndarray
+    par: np.ndarray
+    time: float | None
+    deadline: float
+    in_domain: bool
+    seconds: float = 0.0
+    regular: Candidate | None = None
+
+    def time_left(self) -> float:
+        return self.deadline - clock.perf_counter()
