@@ -126,8 +126,7 @@ def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
     assert kept_cost(controller, x, y_t) <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
     # the straight line alone: FATROP stops at its iteration budget deep inside a region (cost 4e7)
     par = controller.parameters(x, y_t, 0.0)
-    start = guess_start(controller.tiered, x, par, controller.escape.cold_guesses(x, y_t)[1])
-    start.budget, start.cold = 200, True
+    start = guess_start(controller.tiered, x, par, controller.escape.cold_guesses(x, y_t)[1], budget=200, cold=True)
     line = solve_start(start, par, controller.settings.feasibility_tolerance)
     assert line.label == "straight" and (not line.usable or line.depth > 1e-3), line
 

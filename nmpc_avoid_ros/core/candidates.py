@@ -196,7 +196,7 @@ class EscapeGuesses:
         return out + self.guesses(x, y_a, y_t, par, regions)
 
     def cold_guesses(self, x: np.ndarray, y_t: np.ndarray) -> list[Guess]:
-        """Guesses for a start without a plan, in the order they are tried (Tiers.cold_start): a plan
+        """Guesses for a start without a plan, in the order they are tried (NmpcController._regular_starts): a plan
         that comes to rest at the plant's own output (aimed into lambda Z), then the straight line to
         y_t's steady state (clipped into the bounds).
 
@@ -296,10 +296,11 @@ def guess_w(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess) -> np.nd
     return nlp.fill_slacks(layout.join_w(guess.inputs, guess.states, guess.y_a, rest, x0=x), par)
 
 
-def guess_start(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess, label: str | None = None) -> Start:
-    """The guess as a search Start of `nlp` (zero multipliers, the regular iteration budget)."""
+def guess_start(nlp: NlpBase, x: np.ndarray, par: np.ndarray, guess: Guess, label: str | None = None,
+                budget: int | None = None, cold: bool = False) -> Start:
+    """The guess as a search Start of `nlp` (zero multipliers; iteration budget: the regular one unless given)."""
     return Start(label or guess.label, nlp, guess_w(nlp, x, par, guess), np.zeros(nlp.layout.n_w),
-                 np.zeros(nlp.lbg.size), nlp.settings.max_iterations)
+                 np.zeros(nlp.lbg.size), budget or nlp.settings.max_iterations, cold)
 
 
 #: an escape candidate may predict at most this much penetration beyond the base plan's (region g units)

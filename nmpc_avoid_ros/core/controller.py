@@ -71,7 +71,7 @@ class NmpcController:
         # far from any solution: there the fast paths' line searches stall (measured: SQP beside
         # an ellipse; FATROP on the mobile robot for N >= 10) and a real-time budget is too small.
         # Where an ellipse tier holds the regions, the fast path solves it on the tier from a plan
-        # resting at the plant's output, then the straight line (Tiers.cold_start); otherwise, or
+        # resting at the plant's output, then the straight line (_regular_starts); otherwise, or
         # when neither is usable, the reference IPOPT formulation with a cold-start budget solves it.
         # The fast path continues from the plan.
         self.cold_nlp: NlpBase | None = None
@@ -294,9 +294,8 @@ class NmpcController:
         budget = max(s.max_iterations, COLD_START_ITERATIONS)
         starts = []
         if self.tiered.tier is not None and mem.plan is None and self.escape.available:
-            starts = [guess_start(self.tiered, x, sample.par, guess) for guess in self.escape.cold_guesses(x, y_t)]
-            for start in starts:
-                start.budget, start.cold = budget, True
+            starts = [guess_start(self.tiered, x, sample.par, guess, budget=budget, cold=True)
+                      for guess in self.escape.cold_guesses(x, y_t)]
         # SQP paths try a cold start themselves (cheap, and it works on small problems); FATROP fails
         # slowly there (hundreds of ms): the reference solves it
         if s.solver.startswith("sqp"):
