@@ -95,6 +95,7 @@ class NmpcController:
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
         # the regular NLP solved on the smallest ellipse tier that holds the regions (core/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
+        self.tiered.set_regions(self._regions)  # no regions yet: the smallest tier
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
         #: y_t -> its nearest reachable output y* (core/projection.py): the target the NLP tracks
