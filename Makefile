@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 OUT    ?= out
 PYTEST_ARGS ?=
 
-.PHONY: venv demo test lint bench clean readme
+.PHONY: venv demo test test-core lint bench clean readme
 
 venv: $(STAMP)
 
@@ -24,6 +24,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check nmpc_avoid_ros test
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# the quick subset (about a minute): no ROS nodes / DDS, nothing that takes more than ~5 s
+# (markers in pyproject.toml); `make test` runs everything
+test-core: $(STAMP)
+	$(BIN)/ruff check nmpc_avoid_ros test
+	$(BIN)/python -m pytest -m "not dds and not slow" $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check nmpc_avoid_ros test

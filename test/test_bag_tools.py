@@ -36,12 +36,16 @@ def demo_out(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_demo_leaves_bags_metrics_and_figures(demo_out):
     for name in ("with_avoidance.mcap", "without_avoidance.mcap", "metrics.json", "phase_portrait.png",
                  "time_series.png", "value_function.png", "report.html"):
         assert (demo_out / name).stat().st_size > 1000, name
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 @pytest.mark.parametrize("name", RUNS)
 def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo_out, name, shipped_paper):
     with AnyReader([demo_out / f"{name}.mcap"]) as reader:
@@ -68,6 +72,8 @@ def test_bags_read_back_with_rosbags_hold_every_topic_and_the_plants_states(demo
     np.testing.assert_allclose(np.array(states[:51]), shipped_paper(RUNS[name], "euler").x, atol=1e-12)
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_analyze_of_the_paper_bags_matches_simulate(demo_out, shipped_paper, tmp_path):
     res = cli("analyze", str(demo_out / "with_avoidance.mcap"), str(demo_out / "without_avoidance.mcap"),
               "--out", str(tmp_path))
@@ -90,6 +96,8 @@ def test_analyze_of_the_paper_bags_matches_simulate(demo_out, shipped_paper, tmp
     assert (tmp_path / "value_function.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 @pytest.mark.parametrize("name", RUNS)
 def test_lockstep_certificate_is_the_offline_loops(demo_out, name, shipped_paper):
     """The node's per-sample certificate (diagnostics) equals the offline loop's, with no violation."""
@@ -102,6 +110,8 @@ def test_lockstep_certificate_is_the_offline_loops(demo_out, name, shipped_paper
     np.testing.assert_allclose(bounds, [c["decrease_bound"] for c in offline[1:]], rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_replay_resolve_reproduces_the_recorded_commands_and_reports_a_new_tuning(demo_out, tmp_path):
     res = cli("replay", str(demo_out / "with_avoidance.mcap"), "--resolve", "--json", str(tmp_path / "same.json"))
     assert res.returncode == 0, res.stderr
@@ -115,6 +125,8 @@ def test_replay_resolve_reproduces_the_recorded_commands_and_reports_a_new_tunin
     assert "differ beyond" in res.stdout and "step" in res.stdout
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_truncated_bag_is_recovered_and_said_to_be_unfinished(demo_out, tmp_path):
     data = (demo_out / "with_avoidance.mcap").read_bytes()
     cut = tmp_path / "cut.mcap"
@@ -147,6 +159,8 @@ def test_broken_files_get_a_clear_error_not_a_traceback(tmp_path, content, tool)
     assert f"{tool}: error:" in res.stderr and "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_a_bag_without_controller_topics_gets_a_clear_error(demo_out, tmp_path):
     from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
 
@@ -186,6 +200,8 @@ def test_a_controller_sample_with_an_unknown_status_gets_a_clear_error(tmp_path)
     assert res.returncode == 1 and "panic" in res.stderr and "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline_mu_0_loop(demo_out, shipped_paper,
                                                                                            tmp_path):
     from nmpc_avoid_ros.tools.replay import main as replay_main  # in process: no interpreter start per call
@@ -209,6 +225,8 @@ def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline
         assert (tmp_path / "mu0" / figure).stat().st_size > 10_000, figure
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_closed_loop_sweep_gives_a_table_and_a_figure_and_refuses_what_cannot_be_swept(demo_out, tmp_path, capsys):
     from nmpc_avoid_ros.tools.replay import main as replay_main  # in process: no interpreter start per call
 
@@ -226,6 +244,8 @@ def test_closed_loop_sweep_gives_a_table_and_a_figure_and_refuses_what_cannot_be
         assert err.startswith("replay: error:") and words in err and len(err.strip().splitlines()) == 1, (sweep, err)
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_replay_republishes_the_recorded_topics_with_their_timing(demo_out, ros_graph):
     _, _, start, probe = ros_graph
     p = probe()
@@ -265,6 +285,8 @@ def red_pixels(png: bytes) -> np.ndarray:
     return (np.abs(rgb[:, :, 0] - 214) < 30) & (rgb[:, :, 1] < 80) & (rgb[:, :, 2] < 80)
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_html_report_of_the_demo_bags_is_self_contained_renders_and_scrubs_in_headless_chromium(demo_out, tmp_path):
     from playwright.sync_api import sync_playwright
 

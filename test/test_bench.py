@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from nmpc_avoid_ros.bench.main import main
 
 
+@pytest.mark.slow
 def test_bench_writes_one_record_per_variant_and_scenario(tmp_path, capsys):
     out = tmp_path / "bench.json"
     code = main(["--quick", "--json", str(out), "--no-node", "--scenarios", "paper/mu=1e+08/euler,moving",

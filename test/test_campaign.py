@@ -48,6 +48,7 @@ def campaign(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_json_structure_and_sensible_values(campaign):
     data = json.loads((campaign / JSON_NAME).read_text())
     assert set(data) == {"meta", "definitions", "summary", "scenarios"}
@@ -87,6 +88,7 @@ def test_json_structure_and_sensible_values(campaign):
         assert (campaign / name).stat().st_size > 5000
 
 
+@pytest.mark.slow
 def test_rerun_does_no_new_work_and_gives_the_same_summary(campaign, capsys):
     before = (campaign / JSONL_NAME).read_bytes()
     summary = json.loads((campaign / JSON_NAME).read_text())["summary"]
@@ -96,6 +98,7 @@ def test_rerun_does_no_new_work_and_gives_the_same_summary(campaign, capsys):
     assert json.loads((campaign / JSON_NAME).read_text())["summary"] == summary
 
 
+@pytest.mark.slow
 def test_a_crash_mid_write_is_completed(campaign, tmp_path, capsys):
     """Two records lost and a torn last line (killed while writing): the rerun runs exactly those two."""
     out = tmp_path / "crashed"
@@ -112,6 +115,7 @@ def test_a_crash_mid_write_is_completed(campaign, tmp_path, capsys):
     assert _untimed(new["summary"]) == _untimed(old["summary"])
 
 
+@pytest.mark.slow
 def test_another_seed_in_the_same_directory_is_refused(campaign, capsys):
     assert main(["--out", str(campaign), "--vdp", "1", "--robot", "0", "--seed", "99", "--no-progress"]) == 2
     assert "seed" in capsys.readouterr().err
@@ -159,6 +163,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_bad_input_is_refused_with_one_line_and_nothing_lost(campaign, tmp_path, capsys):
     out = tmp_path / "kept"
     shutil.copytree(campaign, out)
@@ -182,6 +187,7 @@ def test_bad_input_is_refused_with_one_line_and_nothing_lost(campaign, tmp_path,
     assert (out / JSONL_NAME).read_text() == broken
 
 
+@pytest.mark.slow
 def test_sweep_runs_the_same_scenarios_per_value(tmp_path):
     args = ["--out", str(tmp_path), "--vdp", "3", "--robot", "0", "--seed", SEED, "--vdp-steps", "30",
             "--max-solve-time", "30", "--no-progress", "--jobs", "1", "--sweep", "mu=0,1e8"]
@@ -202,6 +208,7 @@ def test_sweep_runs_the_same_scenarios_per_value(tmp_path):
     assert {v: read_jsonl(tmp_path / f"mu={v}" / JSONL_NAME) for v in runs} == runs
 
 
+@pytest.mark.slow
 def test_set_changes_any_setting_of_every_family_and_a_resume_must_repeat_it(tmp_path, capsys):
     """`--set` reaches every family's controller, structural settings too (the reference path by name)."""
     args = ["--out", str(tmp_path), "--vdp", "2", "--robot", "1", "--seed", SEED, "--vdp-steps", "20",

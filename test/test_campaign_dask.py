@@ -20,6 +20,8 @@ from nmpc_avoid_ros.evaluation.campaign.cli import main
 from nmpc_avoid_ros.evaluation.campaign.running import JSONL_NAME, comparable, read_jsonl
 from nmpc_avoid_ros.tools.processes import NodeProcess
 
+pytestmark = pytest.mark.slow
+
 DASK = [str(Path(sys.executable).parent / "dask")]
 # 40 scenarios: 30 van der Pol and 10 robot runs, short, so that the whole module stays near a minute
 ARGS = ["--vdp", "30", "--robot", "10", "--seed", "11", "--vdp-steps", "15", "--robot-steps", "10",

@@ -12,6 +12,8 @@ import pytest
 
 from nmpc_avoid_ros.cli import COMMANDS
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 COLCON = Path(sys.executable).parent / "colcon"
 

@@ -31,6 +31,8 @@ from nmpc_avoid_ros.core.settings import ControllerSettings
 from nmpc_avoid_ros.ros.markers import ellipse_marker
 from nmpc_avoid_ros.ros.parameters import STREAM_QOS
 
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
+
 ERROR, OK_LEVEL = 2, 0
 #: the bound on |x1 x2| asserted with the continuous (not the Euler) plant: the constraint is 2,
 #: the controller predicts with Euler, so the real plant may exceed it slightly

@@ -14,6 +14,7 @@ import json
 import math
 import random
 
+import pytest
 from fuzzing import fuzz_settings
 from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
@@ -24,6 +25,8 @@ from visualization_msgs.msg import MarkerArray
 
 from nmpc_avoid_ros.core.regions import Ellipse, rotated_box
 from nmpc_avoid_ros.ros.markers import regions_to_markers
+
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 SEED = 20240606
 

@@ -143,6 +143,7 @@ def test_launch_file_names_only_what_exists_and_what_the_nodes_declare(launch_fi
             ControllerSettings.from_params(overrides)  # the controller validates them (ConfigError otherwise)
 
 
+@pytest.mark.dds
 @pytest.mark.parametrize("launch_file", sorted(EXPECTED_ARGUMENTS))
 def test_nodes_start_as_ros2_launch_would_start_them(launch_file, monkeypatch, ros_graph, tmp_path):
     _, _, start, _ = ros_graph

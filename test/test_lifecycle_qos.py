@@ -9,6 +9,7 @@ import re
 import time
 
 import numpy as np
+import pytest
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.qos import QoSPresetProfiles
@@ -18,6 +19,8 @@ from test_nodes_behaviour import PARAMS, Listener, lockstep_command
 from nmpc_avoid_ros.core.closed_loop import DiscretePlant
 from nmpc_avoid_ros.core.models import make_model
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS
+
+pytestmark = pytest.mark.dds
 
 
 class LifecycleClient:
@@ -41,6 +44,7 @@ class LifecycleClient:
         return self._call(self.change, ChangeState.Request(transition=Transition(id=transition_id))).success
 
 
+@pytest.mark.slow
 def test_lifecycle_sequence_through_the_lifecycle_services(ros_graph):
     _, _, start, probe = ros_graph
     p = probe()

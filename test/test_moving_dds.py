@@ -30,6 +30,8 @@ from nmpc_avoid_ros.ros.markers import region_marker
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 from nmpc_avoid_ros.tools.scene_demo import run_scene_demo
 
+pytestmark = pytest.mark.dds
+
 ROBOT = ROOT / "config" / "mobile_robot.yaml"
 WALKER = (ROOT / "config" / "scenes" / "crossing_walker.yaml").read_text()
 
@@ -52,6 +54,7 @@ def _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep: bool, **overrides: 
     return metrics, run
 
 
+@pytest.mark.slow
 def test_walker_crossing_in_lockstep_meets_the_walker_and_keeps_clearance_in_the_recorded_bag(
         ros_graph, tmp_path, monkeypatch):
     """obstacles node + controller + lockstep plant + recorder on the plant's /clock; analyze on the
@@ -75,6 +78,7 @@ def test_walker_crossing_in_lockstep_meets_the_walker_and_keeps_clearance_in_the
 REAL_TIME_CLEARANCE = -0.01
 
 
+@pytest.mark.slow
 def test_walker_crossing_in_real_time_keeps_clearance_in_the_recorded_bag(ros_graph, tmp_path, monkeypatch):
     """The same with the real-time plant: no collision beyond what the answer's latency explains (how
     close the robot gets depends on how fast the controller answers; the lockstep test checks the
@@ -120,6 +124,7 @@ def test_lockstep_on_sim_time_gives_each_state_its_sample_time_whichever_arrives
     assert times == pytest.approx([0.5 * k for k in range(6)], abs=1e-9)
 
 
+@pytest.mark.slow
 def test_bad_moving_markers_are_refused_or_reset_with_a_reason_and_the_last_good_regions_stay(ros_graph):
     _, _, start, probe_factory = ros_graph
     ctrl = start("controller", "--ros-args", "--params-file", str(ROBOT), "-p", "target:=[8.0, 0.0]",

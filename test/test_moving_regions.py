@@ -93,6 +93,7 @@ def crossing(controller: NmpcController, steps: int = 56) -> float:
     return deepest
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["ipopt", "fatrop"])
 def test_prediction_avoids_a_crossing_walker_that_the_static_assumption_hits(solver):
     """Both formulations; the same NLP object throughout: toggling prediction and moving regions never rebuild."""

@@ -23,6 +23,8 @@ from rosgraph import CONFIG, NodeProcess
 
 from nmpc_avoid_ros.bag.mcap_io import BagError, load_bag
 
+pytestmark = [pytest.mark.dds, pytest.mark.slow, pytest.mark.root]
+
 CLONE_NEWNET = 0x40000000
 TAG = os.getpid() % 100_000
 SUBNET = f"10.{200 + TAG % 50}.{TAG % 250}"  # a private /24: .1 the plant host, .2 the controller host

@@ -28,6 +28,8 @@ from nmpc_avoid_ros.core.settings import ControllerSettings
 from nmpc_avoid_ros.ros.markers import delete_marker, ellipse_marker, regions_to_markers
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 
+pytestmark = pytest.mark.dds
+
 PARAMS = ["--ros-args", "--params-file", str(CONFIG)]
 
 
@@ -79,6 +81,7 @@ def start_pair(start, *extra: str, lockstep: bool = True, ns: str | None = None,
     return ctrl, plant
 
 
+@pytest.mark.slow
 def test_shipped_config_closes_the_paper_loop_in_real_time_once_a_target_arrives(ros_graph):
     _, _, start, probe = ros_graph
     listen = Listener(probe())
@@ -99,6 +102,7 @@ def test_shipped_config_closes_the_paper_loop_in_real_time_once_a_target_arrives
     assert "controller ready" in ctrl.output() and "plant ready" in plant.output()
 
 
+@pytest.mark.slow
 def test_target_change_and_an_obstacle_mid_run_through_topics(ros_graph):
     """The probe is the plant (the paper's Euler map), so it can hold the loop while a message travels."""
     _, _, start, probe = ros_graph
@@ -237,6 +241,7 @@ def test_certificate_violations_warn_with_the_margin_then_error_and_go_on_the_ce
     assert ctrl.stop() == 0
 
 
+@pytest.mark.slow
 def test_stale_state_triggers_the_safe_behaviour_and_an_error_then_control_resumes(ros_graph):
     p, listen, ctrl = controller_with_probe(ros_graph, 0.5, "-p", "state_timeout:=0.6", "-p", "sample_time:=0.2")
 
@@ -269,6 +274,7 @@ def test_stale_state_triggers_the_safe_behaviour_and_an_error_then_control_resum
     assert ctrl.stop() == 0
 
 
+@pytest.mark.slow
 def test_garbage_on_every_input_never_stops_the_controller(ros_graph):
     p, listen, ctrl = controller_with_probe(ros_graph, 1.0, "-p", "sample_time:=0.2", "-p", "state_timeout:=5.0")
     good = Float64MultiArray(data=[0.5, 0.0])
@@ -310,6 +316,7 @@ def test_garbage_on_every_input_never_stops_the_controller(ros_graph):
     assert ctrl.stop() == 0
 
 
+@pytest.mark.slow
 def test_two_pairs_in_namespaces_run_side_by_side_without_crosstalk(ros_graph):
     _, _, start, probe = ros_graph
     p = probe()
@@ -340,6 +347,7 @@ def test_help_and_bad_configuration_exit_codes(command, ros_graph):
         assert bad.split(":=")[0] in res.stderr.strip().splitlines()[-1], res.stderr
 
 
+@pytest.mark.slow
 def test_mobile_robot_reaches_its_goal_among_obstacles_published_as_markers(ros_graph):
     _, _, start, probe = ros_graph
     p = probe()

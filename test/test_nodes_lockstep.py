@@ -9,6 +9,8 @@ from std_msgs.msg import Float64MultiArray
 
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 
+pytestmark = pytest.mark.dds
+
 STEPS = 50
 
 

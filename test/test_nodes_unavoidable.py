@@ -8,6 +8,7 @@ diagnostic; once the marker is deleted the loop recovers and settles.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_nodes_behaviour import controller_with_probe, lockstep_command
 from visualization_msgs.msg import MarkerArray
 
@@ -15,6 +16,8 @@ from nmpc_avoid_ros.core.closed_loop import DiscretePlant
 from nmpc_avoid_ros.core.models import make_model
 from nmpc_avoid_ros.core.regions import Ellipse
 from nmpc_avoid_ros.ros.markers import delete_marker, ellipse_marker
+
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 ERROR = 2
 

@@ -246,6 +246,7 @@ def test_broken_files_raise_bag_error_with_a_clear_reason(tmp_path):
         load_bag(tmp_path / "nothing")
 
 
+@pytest.mark.slow
 def test_every_truncation_recovers_a_prefix_and_never_raises_another_error(tmp_path):
     good = tmp_path / "good.mcap"
     write_sample(good, n=60, chunk_size=300)
@@ -291,6 +292,8 @@ def test_random_damage_gives_bag_error_or_a_readable_bag(tmp_path):
 # the recorder node through DDS
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_recorded_topics_read_back_with_rosbags(ros_graph, recorder, tmp_path):
     _domain, _env, _start, probe = ros_graph
     p = probe()
@@ -360,6 +363,8 @@ def test_recorded_topics_read_back_with_rosbags(ros_graph, recorder, tmp_path):
     assert all(abs(t - time.time_ns()) < 120e9 for t in times)  # log time: receive time in ns
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_publishers_with_weaker_qos_are_matched(ros_graph, recorder, tmp_path):
     """A volatile `target` publisher and a best-effort `state` publisher still reach the bag."""
     _domain, _env, _start, probe = ros_graph
@@ -383,6 +388,8 @@ def test_publishers_with_weaker_qos_are_matched(ros_graph, recorder, tmp_path):
     assert "/state [std_msgs/msg/Float64MultiArray] (best effort, volatile, depth 1000)" in rec.output()
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_kill_9_leaves_a_readable_file_with_the_completed_chunks(ros_graph, recorder, tmp_path):
     _domain, _env, _start, probe = ros_graph
     p = probe()
@@ -419,6 +426,8 @@ LOAD_SECONDS = 30.0
 LOAD_RATE = 400.0  # per topic, Hz: 1.2 kHz in total on 3 topics
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_load_1200_messages_per_second_for_30_s_loses_nothing(ros_graph, recorder, tmp_path):
     _domain, _env, _start, probe = ros_graph
     p = probe()
@@ -454,6 +463,8 @@ def test_load_1200_messages_per_second_for_30_s_loses_nothing(ros_graph, recorde
     assert [m.clock.nanosec for _, m in bag.topics["/clock"][:5]] == [0, 1_000_000, 2_000_000, 3_000_000, 4_000_000]
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_split_by_size_writes_numbered_files_read_back_as_one_bag(ros_graph, recorder, tmp_path):
     _domain, _env, _start, probe = ros_graph
     p = probe()
@@ -475,6 +486,7 @@ def test_split_by_size_writes_numbered_files_read_back_as_one_bag(ros_graph, rec
         assert [c.topic for c in reader.connections] == ["/state"]
 
 
+@pytest.mark.dds
 def test_unwritable_output_exits_non_zero_with_a_clear_message(ros_graph, recorder, tmp_path):
     rec = recorder("-p", "output:=/proc/forbidden/x.mcap")
     assert rec.proc.wait(30) != 0
@@ -489,6 +501,7 @@ def test_unwritable_output_exits_non_zero_with_a_clear_message(ros_graph, record
     assert "refusing to overwrite" in rec.output()
 
 
+@pytest.mark.dds
 def test_disk_full_while_recording_exits_non_zero_and_keeps_the_written_chunks(ros_graph, recorder, tmp_path):
     """RLIMIT_FSIZE makes a write fail with EFBIG mid-run, like a disk filling up."""
     _domain, _env, _start, probe = ros_graph
@@ -516,6 +529,8 @@ def test_disk_full_while_recording_exits_non_zero_and_keeps_the_written_chunks(r
     assert values == [float(k) for k in range(len(values))]
 
 
+@pytest.mark.slow
+@pytest.mark.dds
 def test_a_volatile_publisher_on_a_latched_topic_is_recorded_from_its_first_sample(ros_graph, recorder, tmp_path):
     """`ros2 topic pub --once target` (volatile) publishes as soon as any reader matches; the
     recorder's volatile companion reader records it at once; a latched sample is written once."""

@@ -9,6 +9,7 @@ import math
 import time
 
 import numpy as np
+import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped
@@ -25,6 +26,8 @@ from nmpc_avoid_ros.ros.markers import regions_to_markers
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 from nmpc_avoid_ros.ros.robot import state_to_odometry, yaw_of
 from nmpc_avoid_ros.ros.visualization import STATS_LABELS
+
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 CONFIG = ROOT / "config" / "unicycle.yaml"
 RVIZ_TYPES = {"rviz_default_plugins/Odometry": "nav_msgs/msg/Odometry",

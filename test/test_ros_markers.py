@@ -450,6 +450,7 @@ def garbage_markers(draw: st.DrawFn) -> Marker:
     return m
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.lists(garbage_markers(), max_size=12), min_size=1, max_size=4))
 def test_garbage_markers_never_raise_and_keep_the_store_valid(messages: list[list[Marker]]) -> None:

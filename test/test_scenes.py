@@ -84,6 +84,7 @@ def test_simulate_cli_refuses_a_malformed_scene_in_one_line(tmp_path, capsys):
     assert err.startswith("simulate: error: scene.steps:") and "\n" not in err
 
 
+@pytest.mark.slow
 def test_simulate_scene_writes_poses_and_clearances_and_prediction_avoids_the_walker(tmp_path):
     """The crossing walker: with prediction the robot keeps out (1e-3); the static assumption walks into it."""
     report = {}

@@ -46,6 +46,7 @@ def test_simulate_bad_input_is_a_clear_error(args, message, capsys):
     assert message in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_module_dispatch_lists_commands_and_runs_figures(tmp_path):
     listing = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "--help"], capture_output=True, text=True)
     assert listing.returncode == 0 and "simulate" in listing.stdout and "controller" in listing.stdout

@@ -59,6 +59,7 @@ def test_the_robot_parks_with_a_free_heading_and_the_fast_paths_refuse_the_model
             NmpcController(robot_settings(solver=solver))
 
 
+@pytest.mark.slow
 def test_offline_loop_reaches_the_goal_around_two_ellipses():
     controller = NmpcController(robot_settings())
     ellipses = [Ellipse((-1.2, -1.0), (0.7, 0.5), 0.5, "output"), Ellipse((1.2, 0.7), (0.5, 0.8), 0.0, "output")]
