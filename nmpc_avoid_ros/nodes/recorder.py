@@ -17,6 +17,12 @@ offers that, so that every publisher matches.
 `split_size` or `split_duration`, files are numbered ``<stem>_0.mcap``, ``<stem>_1.mcap``, ...
 An unwritable path or a full disk is reported and ends the node with a non-zero exit status;
 SIGINT / SIGTERM drain the queues, finish the file and log the message count per topic.
+
+While it records, `~/counts` (diagnostic_msgs/DiagnosticStatus, reliable, transient local) says
+how many messages of each topic are written (a value per topic: key the topic, value the count),
+every COUNTS_PERIOD s when they changed. A tool that knows what a finished loop published waits
+for those counts before it stops the nodes (tools/processes.settle): a message still on its way
+when its publisher exits is lost.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterType
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -39,15 +46,17 @@ from rclpy.subscription import Subscription
 from ..bag.mcap_io import BagError
 from ..bag.mcap_writer import COMPRESSIONS, DEFAULT_CHUNK_SIZE, Ros2McapWriter
 from ..core.errors import ConfigError
-from ..ros.parameters import ParamSpec, declare
+from ..ros.parameters import LATCHED_QOS, ParamSpec, declare
 from .runner import run_node
 
 DEFAULT_TOPICS = ["state", "command", "target", "obstacles", "/diagnostics", "controller/prediction",
                   "controller/certificate", "/clock"]
 #: messages taken per callback beyond the one the executor delivers (fairness between topics)
 BATCH = 200
-#: topics never recorded by `topics: ["*"]`
+#: topics never recorded by `topics: ["*"]` (nor is the recorder's own ~/counts)
 GRAPH_TOPICS = ("/rosout", "/parameter_events")
+#: s between two `~/counts` messages at most (only sent when a count changed)
+COUNTS_PERIOD = 0.1
 
 RECORDER_SPECS = [
     ParamSpec("output", "", "the .mcap file or a directory; empty: bags/run-<YYYYmmdd-HHMMSS>.mcap",
@@ -55,8 +64,8 @@ RECORDER_SPECS = [
     ParamSpec("overwrite", False, "replace an existing output file instead of refusing to start",
               ParameterType.PARAMETER_BOOL, read_only=True),
     ParamSpec("topics", DEFAULT_TOPICS, "topics to record (relative names resolve in the node's namespace); "
-              "[\"*\"]: every topic except /rosout and /parameter_events", ParameterType.PARAMETER_STRING_ARRAY,
-              read_only=True),
+              "[\"*\"]: every topic except /rosout, /parameter_events and its own ~/counts",
+              ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
     ParamSpec("types", None, "topic=pkg/msg/Type entries: subscribe before a publisher exists (the graph's type "
               "wins when they differ)", ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
     ParamSpec("latched_topics", ["target", "obstacles"], "topics subscribed transient local with depth 1 (plus a "
@@ -153,6 +162,10 @@ class RecorderNode(Node):
         self.writer: Ros2McapWriter = self._open_file()  # an unwritable output fails here, before any topic
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.counts_topic = self.resolve_topic_name("~/counts")
+        self.counts_pub = self.create_publisher(DiagnosticStatus, "~/counts", LATCHED_QOS)
+        self.counts_sent: tuple[dict[str, int], str | None] | None = None
+        self.counts_timer = self.create_timer(COUNTS_PERIOD, self.publish_counts, clock=steady)
         self.discovery_timer = self.create_timer(float(values["discovery_period"]), self.discover, clock=steady)
         flush_period = float(values["flush_period"])
         self.flush_timer = self.create_timer(flush_period, self.flush, clock=steady) if flush_period > 0 else None
@@ -213,7 +226,8 @@ class RecorderNode(Node):
         if self.error is not None:
             return
         graph = dict(self.get_topic_names_and_types())
-        names = [t for t in graph if t not in GRAPH_TOPICS] if self.record_all else self.wanted
+        names = [t for t in graph if t not in GRAPH_TOPICS and t != self.counts_topic] if self.record_all \
+            else self.wanted
         for name in names:
             if name in self.unrecordable:
                 continue
@@ -342,6 +356,18 @@ class RecorderNode(Node):
             topic.last_sequence = sequence
         else:
             topic.last_sequence = None
+
+    def publish_counts(self) -> None:
+        """`~/counts`: the messages written per topic (ERROR level, and the reason, once recording stopped)."""
+        counts = {t.name: t.count for t in self.topics.values()}
+        if (counts, self.error) == self.counts_sent:
+            return
+        self.counts_sent = (counts, self.error)
+        level, message = (DiagnosticStatus.ERROR, f"recording stopped: {self.error}") if self.error is not None \
+            else (DiagnosticStatus.OK, f"{sum(counts.values())} messages written")
+        self.counts_pub.publish(DiagnosticStatus(
+            level=level, name=self.get_fully_qualified_name(), message=message,
+            values=[KeyValue(key=name, value=str(n)) for name, n in counts.items()]))
 
     def flush(self) -> None:
         if self.error is None:
