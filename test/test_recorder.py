@@ -34,8 +34,9 @@ from visualization_msgs.msg import Marker, MarkerArray
 from nmpc_avoid_ros.bag.mcap_io import BagError, load_bag, read_bag
 from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
 from nmpc_avoid_ros.bag.msg_definitions import SEPARATOR, field_dependencies, message_definition
+from nmpc_avoid_ros.core.errors import NmpcError
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
-from nmpc_avoid_ros.tools.processes import NodeProcess
+from nmpc_avoid_ros.tools.processes import NodeProcess, recorder_counts, settle
 
 ROOT = Path(__file__).resolve().parents[1]
 FLOATS = "std_msgs/msg/Float64MultiArray"
@@ -553,3 +554,41 @@ def test_a_volatile_publisher_on_a_latched_topic_is_recorded_from_its_first_samp
     values = [m.data[0] for _, m in load_bag(out).topics["/target"]]
     assert sorted(values) == [1.0, 2.0, 3.0], values
     assert "incompatible QoS" not in rec.output()
+
+
+@pytest.mark.dds
+def test_counts_say_what_is_written_so_a_publisher_may_exit_at_once_after_a_burst(ros_graph, recorder, tmp_path):
+    """The recorder's ~/counts (not itself recorded, also with topics ["*"]) let tools/processes.settle
+    wait until the last messages of a finished loop are in: the publisher exits right after, and the
+    bag holds every message (a stop without that wait lost a lockstep demo's last 14 of 51 states)."""
+    _domain, _env, _start, probe = ros_graph
+    p = probe()
+    pub = p.node.create_publisher(Float64MultiArray, "state", STREAM_QOS)
+    recorded = recorder_counts(p.node)
+    out = tmp_path / "burst.mcap"
+    rec = recorder("-p", f"output:={out}", "-p", 'topics:=["*"]')
+    wait_matched(p, [pub])
+    n = 90  # one burst within the writer's history (STREAM depth 100): nothing is dropped before it is sent
+    for i in range(n):
+        pub.publish(floats(i))
+    waited = settle(lambda: p.executor.spin_once(timeout_sec=0.02), {"/state": n}, recorded, timeout=30.0)
+    assert recorded["/state"] == n
+    p.node.destroy_publisher(pub)  # at once: what was not taken yet would be lost now
+    assert rec.stop() == 0, rec.output()
+    bag = load_bag(out)
+    assert bag.finished and bag.counts() == {"/state": n}, bag.counts()  # no /recorder/counts in the bag
+    assert [m.data[0] for _, m in bag.topics["/state"]] == [float(i) for i in range(n)]
+    print(f"the recorder held the burst's {n} messages {waited * 1e3:.0f} ms after it was published")
+    with pytest.raises(NmpcError, match=r"/state 90 of 91"):  # a message it never gets: a clear error
+        settle(lambda: p.executor.spin_once(timeout_sec=0.02), {"/state": n + 1}, recorded, timeout=0.3)
+
+
+def test_settle_spins_until_the_recorder_holds_what_was_heard_and_names_what_is_missing():
+    recorded: dict[str, int] = {}
+
+    def spin_once() -> None:  # the recorder's counts arrive one message at a time
+        recorded["/state"] = recorded.get("/state", 0) + 1
+
+    assert settle(spin_once, {"/state": 5}, recorded, timeout=10.0) < 10.0 and recorded == {"/state": 5}
+    with pytest.raises(NmpcError, match=r"in 0.05 s: it holds /command 0 of 1$"):
+        settle(lambda: None, {"/state": 5, "/command": 1}, recorded, timeout=0.05)

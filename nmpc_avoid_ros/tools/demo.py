@@ -28,7 +28,7 @@ from ..core.metrics import SETTLING_TOLERANCE, settling_step
 from ..core.settings import default_config_path
 from ..core.status import StepStatus
 from .analyze import analyze
-from .processes import NodeProcess, settle
+from .processes import NodeProcess, count_messages, recorder_counts, settle
 from .simulate import load_scenario, simulate
 
 RUNS = (("with_avoidance", None), ("without_avoidance", 0.0))
@@ -47,8 +47,9 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
     from std_msgs.msg import Float64MultiArray
     from visualization_msgs.msg import MarkerArray
 
+    from ..nodes.recorder import get_message
     from ..ros.markers import delete_all_marker
-    from ..ros.parameters import LATCHED_QOS, STREAM_QOS
+    from ..ros.parameters import LATCHED_QOS
 
     context = rclpy.Context()
     rclpy.init(context=context)
@@ -64,8 +65,13 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
             if "solve_time_ms" in values and status.name.startswith(node.get_namespace().rstrip("/") + "/controller"):
                 samples.append(values)
 
-    node.create_subscription(Float64MultiArray, "state", lambda m: states.append(list(m.data)), STREAM_QOS)
-    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, STREAM_QOS)
+    # every recorded topic but the latched inputs, counted: in lockstep the recorder must hold as many
+    # before the nodes stop (settle)
+    streams = dict(entry.split("=") for entry in RECORDED_TYPES)
+    heard = count_messages(node, {topic: get_message(type_name) for topic, type_name in streams.items()
+                                  if topic not in ("target", "obstacles")},
+                           on={"state": lambda m: states.append(list(m.data)), "/diagnostics": on_diagnostics})
+    recorded = recorder_counts(node)
     target_pub = node.create_publisher(Float64MultiArray, "target", LATCHED_QOS)
     obstacles_pub = node.create_publisher(MarkerArray, "obstacles", LATCHED_QOS)
     scenario = load_scenario(config)
@@ -88,10 +94,11 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
     try:
         target_pub.publish(Float64MultiArray(data=[float(v) for v in scenario.target]))
         deadline = time.monotonic() + timeout
-        # start the plant once the controller is heard and the recorder listens, so nothing is missed
+        # start the plant once the controller is heard and the recorder listens (as this demo does on
+        # each topic), so nothing is missed
         while time.monotonic() < deadline and not (
                 node.count_publishers("/diagnostics") >= 1 and node.count_subscribers("/diagnostics") >= 2
-                and node.count_subscribers("command") >= 1 and node.count_subscribers("state") >= 2):
+                and node.count_subscribers("command") >= 2 and node.count_subscribers("state") >= 2):
             executor.spin_once(timeout_sec=0.05)
             if not recorder.alive():
                 raise NmpcError(f"the recorder exited:\n{recorder.output()[-2000:]}")
@@ -110,7 +117,7 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
             raise NmpcError(f"the loop did not complete {steps} steps in {timeout:.0f} s "
                             f"({len(states)} states, {len(samples)} samples)")
         if lockstep:  # the loop is quiet: the recorder takes its last messages before the nodes stop
-            settle(lambda: executor.spin_once(timeout_sec=0.05))
+            settle(lambda: executor.spin_once(timeout_sec=0.02), heard, recorded)
     finally:
         codes = [p.stop() for p in reversed(procs)]  # plant, controller, then the recorder finishes the bag
         executor.shutdown()

@@ -41,7 +41,7 @@ from ..core.errors import NmpcError
 from ..core.scene import Scene, load_scene
 from ..core.settings import ControllerSettings, load_params_file
 from .analyze import analyze
-from .processes import NodeProcess, settle
+from .processes import NodeProcess, count_messages, recorder_counts, settle
 
 #: `state` subscribers before the lockstep plant publishes x0: recorder, controller, obstacles, the demo
 STATE_LISTENERS = 4
@@ -87,7 +87,8 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
     from std_msgs.msg import Float64MultiArray
     from visualization_msgs.msg import MarkerArray
 
-    from ..ros.parameters import LATCHED_QOS, STREAM_QOS
+    from ..nodes.recorder import get_message
+    from ..ros.parameters import LATCHED_QOS
 
     scene = load_scene(scene_path)
     out.mkdir(parents=True, exist_ok=True)
@@ -121,8 +122,14 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
         while lockstep and pending and (heard["state"] - 1) * sample_time >= pending[0][0] - sample_time - 1e-9:
             publish_next_target()
 
-    node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, STREAM_QOS)
-    node.create_subscription(Float64MultiArray, "state", on_state, STREAM_QOS)
+    # the streams the recorder takes from the start, counted: in lockstep it must hold as many before
+    # the nodes stop (settle)
+    streams = dict(entry.split("=") for entry in RECORDED_TYPES)
+    counted = count_messages(node, {topic: get_message(type_name) for topic, type_name in streams.items()
+                                    if topic not in ("target", "obstacles")},
+                             on={"state": on_state, "/diagnostics": on_diagnostics})
+    recorded = recorder_counts(node)
+
     def on_obstacles(_msg: MarkerArray) -> None:
         heard["obstacles"] += 1
 
@@ -151,7 +158,7 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
 
         def ready() -> bool:
             return (node.count_publishers("/diagnostics") >= 1 and node.count_subscribers("/diagnostics") >= 2
-                    and node.count_subscribers("command") >= 1 and node.count_subscribers("state") >= 3
+                    and node.count_subscribers("command") >= 2 and node.count_subscribers("state") >= 3
                     and heard["obstacles"] > 0)
 
         while time.monotonic() < deadline and not ready():
@@ -170,7 +177,7 @@ def run_scene_demo(scene_path: Path, out: Path, predict: bool | None = None, tim
             raise NmpcError(f"the scene did not complete {needed} samples in {timeout:.0f} s "
                             f"({heard['state']} states, {len(samples)} samples)")
         if lockstep:  # the loop is quiet: the recorder takes its last messages before the nodes stop
-            settle(lambda: executor.spin_once(timeout_sec=0.05))
+            settle(lambda: executor.spin_once(timeout_sec=0.02), counted, recorded)
     finally:
         codes = [p.stop() for p in reversed(procs)]  # plant first; the recorder finishes the bag last
         executor.shutdown()
