@@ -224,6 +224,9 @@ def record(name: str, scenario: Scenario, run: Trajectory, build_s: float) -> di
                      "p99_warm": float(np.percentile(times[1:], 99)) if times.size > 1 else float(times[0]),
                      "max_warm": float(np.max(times[1:])) if times.size > 1 else float(times[0]),
                      "cold_start": float(times[0])},
+        # the worst whole step (our controller's bound: sample_budget() + TIME_BOUND_MARGIN; NaN for a peer)
+        "step_ms_max": None if any(math.isnan(smp.step_time) for smp in samples) else
+        float(np.max([smp.step_time for smp in samples])) * 1e3,
         "iterations": {"median": float(np.median(iters)), "max": int(np.max(iters))},
         "failures": int(sum(smp.failed for smp in samples)),
         "fallbacks": int(sum(smp.fallback for smp in samples)),
@@ -368,7 +371,8 @@ def markdown(report: dict[str, Any]) -> str:
              f"Python {report['machine']['python']}, CasADi {report['machine']['casadi']}, "
              f"load average at the end {tuple(round(v, 2) for v in report['machine'].get('load_average', ()))}", ""]
     header = ("| scenario | variant | median ms | p90 | p99 | max | p99 warm | max warm | cold start | iters med/max | "
-              "fail | fallback | cut | missed | settle (ref) | quality (ref) | final error | speed-up median / max |")
+              "fail | fallback | cut | missed | worst step ms | settle (ref) | quality (ref) | final error | "
+              "speed-up median / max |")
     lines += [header, "|" + "---|" * (header.count("|") - 1)]
     for r in report["records"]:
         t = r["solve_ms"]
@@ -381,7 +385,7 @@ def markdown(report: dict[str, Any]) -> str:
             f"{_fmt(t['max'])} | {_fmt(t.get('p99_warm'))} | {_fmt(t.get('max_warm'))} | {_fmt(t.get('cold_start'))} | "
             f"{_fmt(r['iterations']['median'])}/{r['iterations']['max']} | "
             f"{r['failures']} | {r['fallbacks']} | {r['budget_cut']} | {r['missed_samples']} | "
-            f"{_fmt(r['settling_step'])} ({_fmt(ref.get('settling_step'))}) | "
+            f"{'-' if r.get('step_ms_max') is None else _fmt(r['step_ms_max'])} | {_fmt(r['settling_step'])} ({_fmt(ref.get('settling_step'))}) | "
             f"{label} {_fmt(r[quality_key], 5)} ({_fmt(ref.get(quality_key), 5)}) | {_fmt(r['final_error'])} | "
             f"{_fmt(speed.get('median'))} / {_fmt(speed.get('max'))} |")
     node = report.get("node")

@@ -8,6 +8,8 @@ comparable sample by sample.
 
 from __future__ import annotations
 
+import math
+import time as clock
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -32,6 +34,8 @@ class Sample:
         failed: the solver returned no usable solution (whatever the variant then applied).
         fallback: the variant applied a fallback instead of a fresh solution.
         budget_exhausted: the iteration or time budget cut the solve.
+        step_time: wall time of the whole step (validation, search, fallback), s; NaN for a peer
+            that has no step beyond its solve.
     """
 
     u: np.ndarray
@@ -40,6 +44,7 @@ class Sample:
     failed: bool = False
     fallback: bool = False
     budget_exhausted: bool = False
+    step_time: float = math.nan
 
 
 #: a factory builds a fresh stepper (answering with Samples) for (settings, model); variants are named factories
@@ -54,6 +59,8 @@ class OursStepper:
 
     def step(self, x: np.ndarray, y_t: np.ndarray, regions: Sequence[Region] | None,
              time: float | None = None) -> Sample:
+        begin = clock.perf_counter()
         res = self.controller.step(x, y_t, regions, time=time)
+        step_time = clock.perf_counter() - begin
         return Sample(res.u, res.solve_time, res.iterations, failed=not StepStatus(res.status).is_usable,
-                      fallback=res.is_fallback, budget_exhausted=res.budget_exhausted)
+                      fallback=res.is_fallback, budget_exhausted=res.budget_exhausted, step_time=step_time)
