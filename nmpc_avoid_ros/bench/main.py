@@ -380,12 +380,13 @@ def markdown(report: dict[str, Any]) -> str:
         label = r"max\|x1x2\|" if quality_key == "max_abs_x1x2" else "penetration"
         ref = r.get("reference", {})
         speed = r.get("speedup_vs_reference", {})
+        worst_step = "-" if r.get("step_ms_max") is None else _fmt(r["step_ms_max"])
         lines.append(
             f"| {r['scenario']} | {r['variant']} | {_fmt(t['median'])} | {_fmt(t['p90'])} | {_fmt(t['p99'])} | "
             f"{_fmt(t['max'])} | {_fmt(t.get('p99_warm'))} | {_fmt(t.get('max_warm'))} | {_fmt(t.get('cold_start'))} | "
             f"{_fmt(r['iterations']['median'])}/{r['iterations']['max']} | "
             f"{r['failures']} | {r['fallbacks']} | {r['budget_cut']} | {r['missed_samples']} | "
-            f"{'-' if r.get('step_ms_max') is None else _fmt(r['step_ms_max'])} | {_fmt(r['settling_step'])} ({_fmt(ref.get('settling_step'))}) | "
+            f"{worst_step} | {_fmt(r['settling_step'])} ({_fmt(ref.get('settling_step'))}) | "
             f"{label} {_fmt(r[quality_key], 5)} ({_fmt(ref.get(quality_key), 5)}) | {_fmt(r['final_error'])} | "
             f"{_fmt(speed.get('median'))} / {_fmt(speed.get('max'))} |")
     node = report.get("node")
