@@ -12,9 +12,9 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))  # test helpers (rosgraph)
 
-from nmpc_avoid_ros.core.closed_loop import ClosedLoopRun, run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
-from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import ClosedLoopRun, run_closed_loop
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 PAPER_X0 = [-5.0, 0.0]
 PAPER_TARGET = [5.0]

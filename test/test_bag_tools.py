@@ -81,7 +81,7 @@ def test_analyze_of_the_paper_bags_matches_simulate(demo_out, shipped_paper, tmp
     metrics = {b["bag"].rsplit("/", 1)[-1]: b for b in json.loads((tmp_path / "metrics.json").read_text())["bags"]}
     for name, mu in RUNS.items():
         offline = shipped_paper(mu, "euler")
-        from nmpc_avoid_ros.core.closed_loop import max_abs_product, settling_step
+        from nmpc_avoid_ros.core.loop.closed_loop import max_abs_product, settling_step
 
         m = metrics[f"{name}.mcap"]
         assert m["settling_step"] == settling_step(offline.x[:, 0], 5.0, 0.05)

@@ -13,12 +13,12 @@ import pytest
 
 from nmpc_avoid_ros.bench.peers import PEERS, DoMpcPeer, OptiIpoptPaper
 from nmpc_avoid_ros.bench.variants import OursStepper
-from nmpc_avoid_ros.core.closed_loop import Trajectory, drive, make_plant
-from nmpc_avoid_ros.core.controller import NmpcController
-from nmpc_avoid_ros.core.metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import Trajectory, drive, make_plant
+from nmpc_avoid_ros.core.loop.metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 X0, TARGET, STEPS = [-5.0, 0.0], [5.0], 50

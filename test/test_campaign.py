@@ -9,10 +9,10 @@ import socket
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.metrics import SETTLING_TOLERANCE
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import default_config_path
+from nmpc_avoid_ros.core.config.settings import default_config_path
+from nmpc_avoid_ros.core.loop.metrics import SETTLING_TOLERANCE
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.evaluation.campaign.cli import main
 from nmpc_avoid_ros.evaluation.campaign.reachability import ReachableSet, planar_passage, vdp_passage
 from nmpc_avoid_ros.evaluation.campaign.running import JSON_NAME, JSONL_NAME, read_jsonl

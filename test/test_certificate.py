@@ -1,4 +1,4 @@
-"""The online stability certificate (core/certificate.py, docs/certificate.md) on the paper's loops."""
+"""The online stability certificate (core/loop/certificate.py, docs/certificate.md) on the paper's loops."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.certificate import LAYOUT, StabilityCertificate
-from nmpc_avoid_ros.core.controller import NmpcController
-from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
+from nmpc_avoid_ros.core.loop.certificate import LAYOUT, StabilityCertificate
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 TARGET = np.array([5.0])
 
@@ -103,8 +103,8 @@ def test_a_moving_region_keeps_the_certificate_checked_and_met_on_the_nominal_mo
     """A moving ellipse that the loop brushes past, re-published every sample with its new stamp and pose (as
     an obstacle source does): the same trajectory, so Assumption P holds; the shifted candidate is costed with
     the region where it is at the next sample's stage times: every sample after the first checked, none violated."""
-    from nmpc_avoid_ros.core.closed_loop import run_closed_loop
-    from nmpc_avoid_ros.core.regions import Ellipse
+    from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+    from nmpc_avoid_ros.core.problem.regions import Ellipse
 
     moving = Ellipse(center=(-1.0, -0.5), semi_axes=(0.6, 0.4), velocity=(0.2, 0.1), stamp=0.0)
     run = run_closed_loop(NmpcController(ControllerSettings()), [-5.0, 0.0], TARGET, 50, "euler",

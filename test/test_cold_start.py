@@ -15,13 +15,13 @@ import pytest
 from conftest import PAPER_TARGET, PAPER_X0, count_solves
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
-from nmpc_avoid_ros.core.candidates import Guess, guess_start
-from nmpc_avoid_ros.core.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
-from nmpc_avoid_ros.core.regions import Ellipse, Polygon
-from nmpc_avoid_ros.core.search import Start, plan_cost, solve_start
-from nmpc_avoid_ros.core.settings import ControllerSettings
-from nmpc_avoid_ros.core.warm_start import initial_guess
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
+from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.nlp.search import Start, plan_cost, solve_start
+from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
+from nmpc_avoid_ros.core.sample.candidates import Guess, guess_start
+from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.warm_start import initial_guess
 from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings
 
 #: campaign robot-0007: FATROP from the straight line used its 200 iterations in vain; the resting
@@ -167,7 +167,7 @@ def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
     keep_in = np.max(np.abs(run.x[1:, 0] * run.x[1:, 1])) - 2.0
     obstacles = max(e.depth(x) for e in ellipses(VDP_0336, "state") for x in run.x[1:])
     assert max(keep_in, obstacles) <= 1e-3, (keep_in, obstacles)
-    # the controller tracks y_t's projection y* = 5.94 (core/projection.py): without the pull of 6.42 the
+    # the controller tracks y_t's projection y* = 5.94 (core/nlp/projection.py): without the pull of 6.42 the
     # plan no longer squeezes (it predicted 1.1e-3 before and gave way to the recovery input then), and
     # the loop goes on to y*
     assert all(r.target == pytest.approx([5.94]) for r in results)

@@ -27,14 +27,15 @@ def imported_modules(path: Path) -> set[str]:
 
 
 def test_core_sources_import_no_ros_module():
-    files = sorted(CORE_DIR.glob("*.py"))
+    files = sorted(CORE_DIR.rglob("*.py"))
     assert len(files) >= 6
-    offenders = {f.name: sorted(imported_modules(f) & set(ROS_MODULES)) for f in files}
+    offenders = {str(f.relative_to(CORE_DIR)): sorted(imported_modules(f) & set(ROS_MODULES)) for f in files}
     assert {k: v for k, v in offenders.items() if v} == {}
 
 
 def test_importing_all_of_core_loads_no_ros_module():
-    modules = [f"nmpc_avoid_ros.core.{f.stem}" for f in CORE_DIR.glob("*.py") if f.stem != "__init__"]
+    modules = [".".join(("nmpc_avoid_ros", "core", *f.relative_to(CORE_DIR).with_suffix("").parts))
+               for f in CORE_DIR.rglob("*.py") if f.stem != "__init__"]
     code = (
         "import sys\n"
         + "".join(f"import {m}\n" for m in modules)
@@ -84,3 +85,30 @@ def test_the_layer_check_sees_relative_imports():
     probe = PACKAGE_DIR / "evaluation" / "campaign" / "scoring.py"
     assert {"core"} <= package_imports(probe)
     assert "tools" in package_imports(PACKAGE_DIR / "bench" / "node.py")
+
+
+#: the rooms of core in their order: each imports only rooms before it (core/__init__.py)
+ROOMS = ("problem", "config", "nlp", "sample", "loop")
+
+
+def core_rooms_imported(path: Path) -> set[str]:
+    """The rooms of core a core module imports (relative imports, also inside functions)."""
+    parts = path.relative_to(PACKAGE_DIR.parent).with_suffix("").parts  # ('nmpc_avoid_ros', 'core', room, x)
+    rooms: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level:
+            module = [*parts[:-node.level], *(node.module.split(".") if node.module else [])]
+            if module[:2] == ["nmpc_avoid_ros", "core"] and len(module) > 2 and module[2] in ROOMS:
+                rooms.add(module[2])
+    return rooms
+
+
+def test_core_rooms_depend_one_way():
+    assert sorted(p.name for p in CORE_DIR.iterdir() if p.is_dir() and p.name != "__pycache__") == sorted(ROOMS)
+    offenders = {}
+    for i, room in enumerate(ROOMS):
+        for f in sorted((CORE_DIR / room).rglob("*.py")):
+            later = core_rooms_imported(f) & set(ROOMS[i + 1:])
+            if later:
+                offenders[str(f.relative_to(CORE_DIR))] = sorted(later)
+    assert offenders == {}

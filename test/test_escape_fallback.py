@@ -1,4 +1,4 @@
-"""Local-minimum escape (core/candidates.py) and the fallback choice (core/fallback.py).
+"""Local-minimum escape (core/sample/candidates.py) and the fallback choice (core/sample/fallback.py).
 
 The regression scenes come from the campaign (docs/campaign): an ellipse across the steady states
 between y_a and the target, where the shifted warm start rested in front of it, and vdp-0012,
@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from conftest import PAPER_STEPS, PAPER_TARGET, PAPER_X0
 
-from nmpc_avoid_ros.core.candidates import Guess, escape_admission, guess_start
-from nmpc_avoid_ros.core.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import InputError
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.search import Candidate, SearchReport, plan_cost, search
-from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.nlp.search import Candidate, SearchReport, plan_cost, search
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.candidates import Guess, escape_admission, guess_start
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 #: an ellipse across x2 = 0 (steady states x1 in [2.95, 3.45]) whose top is only 0.05 above the
 #: axis: from x0 = (-5, 0) towards y_t = 7.9 (best reachable 5.94) the loop rested at x1 = 2.95
@@ -239,7 +239,7 @@ ROBOT_0049 = {"x0": [-3.790464243694913, 1.1099982604979832, 0.1154911022448991,
 def test_a_plan_squeezing_between_two_ellipses_is_replaced_by_a_clear_one_that_makes_progress():
     from rosgraph import ROOT
 
-    from nmpc_avoid_ros.core.settings import load_params_file
+    from nmpc_avoid_ros.core.config.settings import load_params_file
 
     params = load_params_file(ROOT / "config" / "mobile_robot.yaml").section("controller")
     controller = NmpcController(ControllerSettings.from_params(params))
@@ -267,7 +267,7 @@ ROBOT_0069 = {"x0": [6.488053293800503, 8.794659367935523, -0.5359977622879994, 
 def test_an_unreachable_goal_beyond_the_box_edge_is_reached_past_an_ellipse_across_the_edge():
     from rosgraph import ROOT
 
-    from nmpc_avoid_ros.core.settings import load_params_file
+    from nmpc_avoid_ros.core.config.settings import load_params_file
 
     params = load_params_file(ROOT / "config" / "mobile_robot.yaml").section("controller")
     controller = NmpcController(ControllerSettings.from_params(params).replace(max_solve_time=5.0))
@@ -280,7 +280,7 @@ def test_an_unreachable_goal_beyond_the_box_edge_is_reached_past_an_ellipse_acro
     run = run_closed_loop(controller, ROBOT_0069["x0"], ROBOT_0069["target"], 140,
                           regions=lambda k: regions if k == 0 else None, on_step=lambda k, res: results.append(res))
     assert np.linalg.norm(run.x[-1, :2] - aim) < 0.05, f"today: rests at {run.x[-1, :2]}, 7.6 m short"
-    # the controller tracks the goal's projection onto Y_r, which is the aim (core/projection.py): the
+    # the controller tracks the goal's projection onto Y_r, which is the aim (core/nlp/projection.py): the
     # loop no longer needs an escape guess to leave the edge (it took one while it tracked the goal itself)
     assert all(r.target == pytest.approx(aim, abs=1e-6) for r in results)
     assert max(e.depth(x[:2]) for e in regions for x in run.x[1:]) <= 1e-3

@@ -1,4 +1,4 @@
-"""Tests of the safe algebraic-expression parser (nmpc_avoid_ros.core.expressions)."""
+"""Tests of the safe algebraic-expression parser (nmpc_avoid_ros.core.problem.expressions)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from nmpc_avoid_ros.core.errors import ExpressionError
-from nmpc_avoid_ros.core.expressions import (
+from nmpc_avoid_ros.core.problem.expressions import (
     MAX_DEPTH,
     MAX_EXPRESSION_LENGTH,
     KeepInConstraint,

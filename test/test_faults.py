@@ -23,11 +23,11 @@ from test_recorder import tolerant_mcap_messages
 from visualization_msgs.msg import MarkerArray
 
 from nmpc_avoid_ros.bag.mcap_io import load_bag
-from nmpc_avoid_ros.core.closed_loop import DiscretePlant, run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
+from nmpc_avoid_ros.core.loop.closed_loop import DiscretePlant, run_closed_loop
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 from nmpc_avoid_ros.ros.markers import ellipse_marker
 from nmpc_avoid_ros.ros.parameters import STREAM_QOS
 

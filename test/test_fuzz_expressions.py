@@ -21,7 +21,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from nmpc_avoid_ros.core.errors import ExpressionError
-from nmpc_avoid_ros.core.expressions import (
+from nmpc_avoid_ros.core.problem.expressions import (
     ALLOWED_CONSTANTS,
     ALLOWED_FUNCTIONS,
     MAX_EXPRESSION_LENGTH,

@@ -27,10 +27,10 @@ from hypothesis import strategies as st
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
 from nmpc_avoid_ros.core.errors import ConfigError, InputError, RegionError
-from nmpc_avoid_ros.core.regions import Ellipse, Polygon, SlotLayout, rotated_box
-from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
-from nmpc_avoid_ros.core.step_result import validate_vector
+from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon, SlotLayout, rotated_box
+from nmpc_avoid_ros.core.sample.step_result import validate_vector
 from nmpc_avoid_ros.ros.conversions import array_to_vector, vector_to_array
 from nmpc_avoid_ros.ros.markers import RegionStore
 

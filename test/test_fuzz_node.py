@@ -23,7 +23,7 @@ from test_fuzz_inputs import hostile_markers
 from test_nodes_behaviour import controller_with_probe
 from visualization_msgs.msg import MarkerArray
 
-from nmpc_avoid_ros.core.regions import Ellipse, rotated_box
+from nmpc_avoid_ros.core.problem.regions import Ellipse, rotated_box
 from nmpc_avoid_ros.ros.markers import regions_to_markers
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
@@ -84,7 +84,7 @@ def test_fuzzed_bursts_never_stop_the_controller(ros_graph) -> None:
         p.spin_for(0.1)
         return bool(listen.commands) and bool(listen.diags)
 
-    # generous: a first start on a fresh machine compiles the solver first (core/codegen.py)
+    # generous: a first start on a fresh machine compiles the solver first (core/nlp/codegen.py)
     assert listen.spin_until(loop_closed, 60), ctrl.output()
     rejected_before = int(listen.diags[-1]["rejected_inputs"])
     n_cmd = len(listen.commands)

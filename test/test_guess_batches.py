@@ -14,11 +14,11 @@ from conftest import PAPER_TARGET, PAPER_X0
 from test_passage import BEST, VDP_0100, run_vdp_0100, shipped
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
-from nmpc_avoid_ros.core.candidates import Guess, guess_batch
-from nmpc_avoid_ros.core.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import ConfigError
-from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.sample.candidates import Guess, guess_batch
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 
 def _guesses(count: int) -> list[Guess]:

@@ -22,7 +22,7 @@ import yaml
 from rosgraph import ROOT
 
 from nmpc_avoid_ros.cli import COMMANDS
-from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.nodes.controller import NODE_SPECS
 from nmpc_avoid_ros.nodes.plant import PLANT_SPECS
 from nmpc_avoid_ros.nodes.recorder import RECORDER_SPECS

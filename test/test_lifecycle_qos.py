@@ -16,8 +16,8 @@ from rclpy.qos import QoSPresetProfiles
 from std_msgs.msg import Float64MultiArray
 from test_nodes_behaviour import PARAMS, Listener, lockstep_command
 
-from nmpc_avoid_ros.core.closed_loop import DiscretePlant
-from nmpc_avoid_ros.core.models import make_model
+from nmpc_avoid_ros.core.loop.closed_loop import DiscretePlant
+from nmpc_avoid_ros.core.problem.models import make_model
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS
 
 pytestmark = pytest.mark.dds

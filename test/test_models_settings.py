@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.closed_loop import max_abs_product, settling_step
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
 from nmpc_avoid_ros.core.errors import ConfigError
-from nmpc_avoid_ros.core.models import MODELS, make_model
-from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import max_abs_product, settling_step
+from nmpc_avoid_ros.core.problem.models import MODELS, make_model
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
@@ -35,7 +35,7 @@ def test_van_der_pol_euler_map_is_the_papers():
 
 
 def test_rk4_is_more_accurate_than_euler():
-    from nmpc_avoid_ros.core.closed_loop import ContinuousPlant
+    from nmpc_avoid_ros.core.loop.closed_loop import ContinuousPlant
 
     model = make_model("van_der_pol")
     x, u = np.array([1.0, 0.5]), np.array([0.3])

@@ -21,10 +21,10 @@ from test_nodes_behaviour import PARAMS, Listener
 from visualization_msgs.msg import MarkerArray
 
 from nmpc_avoid_ros.bag.analysis import load_run
-from nmpc_avoid_ros.core.closed_loop import DiscretePlant
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import DiscretePlant
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.ros.conversions import seconds_to_time
 from nmpc_avoid_ros.ros.markers import region_marker
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS

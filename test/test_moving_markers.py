@@ -14,9 +14,9 @@ from visualization_msgs.msg import MarkerArray
 
 from nmpc_avoid_ros.bag.analysis import load_run, run_metrics
 from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
-from nmpc_avoid_ros.core.motion import VelocityEstimator
-from nmpc_avoid_ros.core.regions import Ellipse, rotated_box
-from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.problem.motion import VelocityEstimator
+from nmpc_avoid_ros.core.problem.regions import Ellipse, rotated_box
 from nmpc_avoid_ros.ros.conversions import seconds_to_time
 from nmpc_avoid_ros.ros.markers import RegionStore, region_marker, regions_to_markers, velocity_from_text
 

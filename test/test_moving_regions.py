@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nmpc_avoid_ros.core.closed_loop import make_plant
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
 from nmpc_avoid_ros.core.errors import RegionError
-from nmpc_avoid_ros.core.regions import Ellipse, SlotLayout, rotated_box
-from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import make_plant
+from nmpc_avoid_ros.core.problem.regions import Ellipse, SlotLayout, rotated_box
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 LAYOUT = SlotLayout(max_ellipses=1, max_polygons=1, max_polygon_vertices=4)
 ROBOT = default_config_path().with_name("mobile_robot.yaml")
@@ -110,7 +110,7 @@ def test_prediction_avoids_a_crossing_walker_that_the_static_assumption_hits(sol
 
 def test_counterfactual_penetration_counts_a_moving_region_where_it_is_at_each_sample() -> None:
     """replay --closed-loop's metrics: sample k is at k Ts, so a walker stamped at 0 is moved there."""
-    from nmpc_avoid_ros.core.closed_loop import ClosedLoopRun
+    from nmpc_avoid_ros.core.loop.closed_loop import ClosedLoopRun
     from nmpc_avoid_ros.evaluation.counterfactual import loop_metrics
 
     settings = ControllerSettings(mu=0.0, keep_in=())

@@ -20,11 +20,11 @@ from std_msgs.msg import Float64MultiArray
 from test_readme import readme_diagnostic_keys
 from visualization_msgs.msg import Marker, MarkerArray
 
-from nmpc_avoid_ros.core.closed_loop import DiscretePlant, run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse, Polygon, rotated_box
-from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
+from nmpc_avoid_ros.core.loop.closed_loop import DiscretePlant, run_closed_loop
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon, rotated_box
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 from nmpc_avoid_ros.ros.markers import delete_marker, ellipse_marker, regions_to_markers
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 
@@ -179,7 +179,7 @@ def test_param_set_of_mu_and_kappa_takes_effect_at_the_next_sample_and_bad_value
     assert client.wait_for_services(10)
     described = client.describe_parameters(["mu", "horizon", "max_iterations"])
     assert listen.spin_until(described.done, 10)
-    mu, horizon, budget = described.result().descriptors  # as declared in core/settings.py
+    mu, horizon, budget = described.result().descriptors  # as declared in core/config/settings.py
     assert not mu.read_only and mu.floating_point_range[0].from_value == 0.0
     assert horizon.read_only and budget.read_only and horizon.integer_range[0].to_value == 2000
 

@@ -12,9 +12,9 @@ import pytest
 from test_nodes_behaviour import controller_with_probe, lockstep_command
 from visualization_msgs.msg import MarkerArray
 
-from nmpc_avoid_ros.core.closed_loop import DiscretePlant
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.loop.closed_loop import DiscretePlant
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.ros.markers import delete_marker, ellipse_marker
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]

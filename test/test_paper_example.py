@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.closed_loop import max_abs_product, run_closed_loop, settling_step
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import InputError, RegionError
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import ControllerSettings
-from nmpc_avoid_ros.core.status import StepStatus
+from nmpc_avoid_ros.core.loop.closed_loop import max_abs_product, run_closed_loop, settling_step
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import StepStatus
 
 TOL = 0.05  # settling band on x1
 

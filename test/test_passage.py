@@ -1,4 +1,4 @@
-"""Passage mode (core/passage.py): the long-horizon escape past a region the N = 5 plan cannot pass.
+"""Passage mode (core/sample/passage.py): the long-horizon escape past a region the N = 5 plan cannot pass.
 
 The regression scene is campaign vdp-0100 (seed 0, shipped van_der_pol.yaml): one ellipse across
 the steady states between x0 and the target; with N = 5 the loop rests at x1 = 3.757 in front of
@@ -13,11 +13,11 @@ import casadi
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
 from nmpc_avoid_ros.core.errors import ConfigError
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import ControllerSettings, default_config_path, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 VDP_0100 = {"x0": [4.131043263542839, 0.32547682974441017], "target": [-7.568570929658973],
             "ellipse": ((3.0189786313202767, 0.21428810184309643), (0.7578689514354666, 0.7994778332882292),

@@ -7,7 +7,7 @@ import re
 from pathlib import Path
 
 from nmpc_avoid_ros import cli
-from nmpc_avoid_ros.core.status import StepStatus
+from nmpc_avoid_ros.core.sample.status import StepStatus
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()

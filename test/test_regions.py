@@ -11,9 +11,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from nmpc_avoid_ros.core.errors import RegionError
-from nmpc_avoid_ros.core.expressions import parse_keep_in
-from nmpc_avoid_ros.core.models import van_der_pol
-from nmpc_avoid_ros.core.regions import Ellipse, Polygon, SlotLayout, rotated_box
+from nmpc_avoid_ros.core.problem.expressions import parse_keep_in
+from nmpc_avoid_ros.core.problem.models import van_der_pol
+from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon, SlotLayout, rotated_box
 
 LAYOUT = SlotLayout(max_ellipses=2, max_polygons=2, max_polygon_vertices=6)
 

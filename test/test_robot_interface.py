@@ -18,10 +18,10 @@ from rclpy.qos import QoSPresetProfiles
 from rosgraph import ROOT
 from visualization_msgs.msg import MarkerArray
 
-from nmpc_avoid_ros.core.closed_loop import ContinuousPlant
 from nmpc_avoid_ros.core.errors import InputError
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
+from nmpc_avoid_ros.core.loop.closed_loop import ContinuousPlant
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.ros.markers import regions_to_markers
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 from nmpc_avoid_ros.ros.robot import state_to_odometry, yaw_of

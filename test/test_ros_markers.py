@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from visualization_msgs.msg import Marker, MarkerArray
 
 from nmpc_avoid_ros.core.errors import InputError, RegionError
-from nmpc_avoid_ros.core.regions import Ellipse, Polygon, SlotLayout, rotated_box
+from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon, SlotLayout, rotated_box
 from nmpc_avoid_ros.ros.markers import (
     MESSAGE_ID,
     ApplyReport,

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from nmpc_avoid_ros.core.regions import Ellipse, Polygon
-from nmpc_avoid_ros.core.scene import SceneError, load_scene
+from nmpc_avoid_ros.core.loop.scene import SceneError, load_scene
+from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
 from nmpc_avoid_ros.tools import simulate
 
 SCENES = Path(__file__).resolve().parents[1] / "config" / "scenes"

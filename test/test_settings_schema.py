@@ -9,9 +9,8 @@ from dataclasses import dataclass
 import pytest
 from rcl_interfaces.msg import ParameterType
 
-from nmpc_avoid_ros.core.errors import ConfigError
-from nmpc_avoid_ros.core.schema import schema, setting
-from nmpc_avoid_ros.core.settings import (
+from nmpc_avoid_ros.core.config.schema import schema, setting
+from nmpc_avoid_ros.core.config.settings import (
     NODE_ONLY_PARAMETERS,
     NODE_SETTINGS,
     RUNTIME_FIELDS,
@@ -19,6 +18,7 @@ from nmpc_avoid_ros.core.settings import (
     ControllerSettings,
     NodeSettings,
 )
+from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.ros.parameters import (
     markdown_table,
     node_settings_from_values,

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.status import StepStatus
+from nmpc_avoid_ros.core.sample.status import StepStatus
 from nmpc_avoid_ros.tools.simulate import main as simulate_main
 
 
@@ -81,7 +81,7 @@ def test_readme_documents_every_parameter_executable_and_topic():
 
 def test_params_file_keys_of_the_controller_node_are_exactly_its_declared_parameters():
     """core.settings accepts node-only keys by name (core cannot import the node): keep the two lists equal."""
-    from nmpc_avoid_ros.core.settings import NODE_ONLY_PARAMETERS
+    from nmpc_avoid_ros.core.config.settings import NODE_ONLY_PARAMETERS
     from nmpc_avoid_ros.nodes.controller import NODE_SPECS
 
     assert NODE_ONLY_PARAMETERS == {spec.name for spec in NODE_SPECS} | {"use_sim_time"}

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nmpc_avoid_ros.core.closed_loop import SETTLING_TOLERANCE, max_abs_product, run_closed_loop, settling_step
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import SOLVERS, ControllerSettings
 from nmpc_avoid_ros.core.errors import ConfigError
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import SOLVERS, ControllerSettings
-from nmpc_avoid_ros.core.stagewise import StagewiseNlp
-from nmpc_avoid_ros.core.status import StepStatus
+from nmpc_avoid_ros.core.loop.closed_loop import SETTLING_TOLERANCE, max_abs_product, run_closed_loop, settling_step
+from nmpc_avoid_ros.core.nlp.stagewise import StagewiseNlp
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import StepStatus
 
 FAST = [s for s in SOLVERS if s != "ipopt"]
 #: the paper problem exactly: its two keep-in regions, no obstacle slots

@@ -1,4 +1,4 @@
-"""Ellipse tiers (core/tiers.py): smaller copies of the regular NLP for samples with few regions.
+"""Ellipse tiers (core/nlp/tiers.py): smaller copies of the regular NLP for samples with few regions.
 
 A tier solves the same problem without the empty slots, so its closed loop equals the regular
 NLP's to the solver's tolerance; samples whose regions do not fit (a polygon, more ellipses than
@@ -12,11 +12,11 @@ import pytest
 from conftest import PAPER_TARGET, PAPER_X0, count_solves
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
-from nmpc_avoid_ros.core.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import ConfigError
-from nmpc_avoid_ros.core.regions import Ellipse, Polygon
-from nmpc_avoid_ros.core.settings import ControllerSettings
+from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 #: the paper's settings with a 2 s budget (a loaded test machine must not cut solves short)
 BASE = ControllerSettings(max_solve_time=2.0)

@@ -4,7 +4,7 @@ validation, on every shipped config and every solver path.
 States anywhere in the validation box (|x| <= 1e12), targets up to the same bound and random region
 sets (ellipses and boxes with centres and sizes up to 1e6) are drawn by hypothesis; each `step` must
 return within NmpcController.sample_budget() + TIME_BOUND_MARGIN (a warm sample: max_solve_time; a
-cold one: the cold-start budget). Without the solve worker (core/worker.py) FATROP does not return
+cold one: the cold-start budget). Without the solve worker (core/nlp/worker.py) FATROP does not return
 on some of them at all: a hang here is turned into a failure by faulthandler, which ends the run.
 """
 
@@ -20,10 +20,10 @@ from fuzzing import fuzz_settings
 from hypothesis import given
 from hypothesis import strategies as st
 
-from nmpc_avoid_ros.core.controller import TIME_BOUND_MARGIN, NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.core.errors import RegionError
-from nmpc_avoid_ros.core.regions import Ellipse, rotated_box
-from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.problem.regions import Ellipse, rotated_box
+from nmpc_avoid_ros.core.sample.controller import TIME_BOUND_MARGIN, NmpcController
 
 pytestmark = pytest.mark.slow
 

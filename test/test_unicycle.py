@@ -9,12 +9,12 @@ import pytest
 from geometry_msgs.msg import PoseStamped, Quaternion, Twist
 from rosgraph import ROOT
 
-from nmpc_avoid_ros.core.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.controller import NmpcController
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.core.errors import ConfigError, InputError
-from nmpc_avoid_ros.core.models import make_model
-from nmpc_avoid_ros.core.regions import Ellipse
-from nmpc_avoid_ros.core.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.problem.models import make_model
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.controller import NmpcController
 from nmpc_avoid_ros.ros.robot import (
     goal_to_target,
     odometry_to_state,

@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from ..core.metrics import max_abs_product, outputs, penetration, region_values, time_stats, tracking
-from ..core.models import make_model
-from ..core.regions import Region
-from ..core.settings import ControllerSettings
-from ..core.status import StepStatus
+from ..core.config.settings import ControllerSettings
+from ..core.loop.metrics import max_abs_product, outputs, penetration, region_values, time_stats, tracking
+from ..core.problem.models import make_model
+from ..core.problem.regions import Region
+from ..core.sample.status import StepStatus
 from .mcap_io import Bag, BagError, load_bag
 
 
@@ -189,7 +189,7 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
 
 def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any]:
     """Settling, overshoot, final error, penetration/clearance, solve-time statistics, counters
-    (definitions: core/metrics.py)."""
+    (definitions: core/loop/metrics.py)."""
     model = make_model(settings.model)
     xs = run.states_with_final
     y = outputs(model, xs, run.u)

@@ -17,9 +17,9 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Ellipse as EllipsePatch  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
-from ..core.models import make_model  # noqa: E402
-from ..core.regions import Ellipse, Polygon, Region  # noqa: E402
-from ..core.settings import ControllerSettings  # noqa: E402
+from ..core.config.settings import ControllerSettings  # noqa: E402
+from ..core.problem.models import make_model  # noqa: E402
+from ..core.problem.regions import Ellipse, Polygon, Region  # noqa: E402
 
 COLORS = ("black", "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 

@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from ..core.metrics import keep_in_values
-from ..core.models import make_model
-from ..core.regions import Ellipse, Region
-from ..core.settings import ControllerSettings
+from ..core.config.settings import ControllerSettings
+from ..core.loop.metrics import keep_in_values
+from ..core.problem.models import make_model
+from ..core.problem.regions import Ellipse, Region
 from .analysis import RecordedRun, run_metrics
 from .mcap_io import Bag
 

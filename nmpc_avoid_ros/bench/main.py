@@ -37,13 +37,13 @@ from typing import Any
 
 import numpy as np
 
-from ..core.closed_loop import ClosedLoop, Stepper, Trajectory, make_plant
+from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
-from ..core.metrics import max_abs_product, outputs, penetration, time_stats, tracking
-from ..core.models import Model, make_model
-from ..core.regions import Ellipse, Region
-from ..core.scene import load_scene
-from ..core.settings import ControllerSettings, default_config_path, load_params_file
+from ..core.loop.closed_loop import ClosedLoop, Stepper, Trajectory, make_plant
+from ..core.loop.metrics import max_abs_product, outputs, penetration, time_stats, tracking
+from ..core.loop.scene import load_scene
+from ..core.problem.models import Model, make_model
+from ..core.problem.regions import Ellipse, Region
 from .variants import OursStepper, Sample
 
 #: the reference all quality figures are compared with: the paper's formulation as written
@@ -64,7 +64,7 @@ def variant_factories() -> dict[str, Callable[[ControllerSettings, Model], Stepp
     return {
         REFERENCE: PEERS["opti_ipopt_paper"],
         # the reference IPOPT path as the configs shipped it before the fast path: every escape guess in
-        # one sample, no ellipse tiers (core/tiers.py)
+        # one sample, no ellipse tiers (core/nlp/tiers.py)
         "ours_ipopt": ours("ipopt", codegen=False, **IPOPT_REFERENCE),
         "ours_fatrop": ours("fatrop"),
         "ours_ipopt_no_prediction": ours("ipopt", codegen=False, predict_obstacles=False, **IPOPT_REFERENCE),
@@ -188,14 +188,14 @@ def crossing_walker_scenario(steps: int) -> Scenario:
 
 
 def start_loop(stepper: Stepper, scenario: Scenario) -> ClosedLoop:
-    """The scenario's closed loop for one variant (the one driver, core/closed_loop.py)."""
+    """The scenario's closed loop for one variant (the one driver, core/loop/closed_loop.py)."""
     s = scenario.settings
     return ClosedLoop(stepper, make_plant(scenario.plant, scenario.model, s), scenario.x0, scenario.target,
                       s.sample_time, scenario.regions)
 
 
 def quality(scenario: Scenario, run: Trajectory) -> dict[str, Any]:
-    """Settling step, final error and the avoidance figure of one run (core/metrics.py)."""
+    """Settling step, final error and the avoidance figure of one run (core/loop/metrics.py)."""
     y = outputs(scenario.model, run.x, run.u)
     track = tracking(y, scenario.target, scenario.settings.sample_time)
     out: dict[str, Any] = {"settling_step": track["settling_step"], "final_error": track["final_error"]}

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.models import make_model
-from ..core.settings import default_config_path
+from ..core.config.settings import default_config_path
+from ..core.problem.models import make_model
 from ..tools.processes import NodeProcess, isolated_env
 
 #: node parameters of the measured controller: the fast path, compiled, solving on each state

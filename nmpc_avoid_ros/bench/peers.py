@@ -1,6 +1,6 @@
 """The two peers of the benchmark: the paper's formulation in CasADi Opti + IPOPT, and do-mpc.
 
-Both solve the problem of core/nlp.py (paper eq. 19-20, simplified scheme):
+Both solve the problem of core/nlp/tracking.py (paper eq. 19-20, simplified scheme):
 
     min  kappa |y_a - y_t|^2 + mu sum_{z in x(0..N), x_a} F(z) + sum_{j<N} |x(j) - x_a|_Q^2 + |u(j) - u_a|_R^2
     s.t. x(0) = measured, x(j+1) = f(x(j), u(j))        (f: the Euler/RK4 map of the model)
@@ -30,11 +30,11 @@ from time import perf_counter
 import casadi as ca
 import numpy as np
 
+from ..core.config.settings import ControllerSettings
 from ..core.errors import ConfigError
-from ..core.expressions import parse_keep_in
-from ..core.models import Model, make_model
-from ..core.regions import Region, SlotLayout
-from ..core.settings import ControllerSettings
+from ..core.problem.expressions import parse_keep_in
+from ..core.problem.models import Model, make_model
+from ..core.problem.regions import Region, SlotLayout
 from .variants import Sample, StepperFactory
 
 #: IPOPT statuses that count as solved (the same set as core.controller.SOLVED)
@@ -54,7 +54,7 @@ def ipopt_options(settings: ControllerSettings) -> dict[str, float | int | str]:
 
 
 class ProblemPieces:
-    """The parts of the problem both peers build from (settings, model), as core/nlp.py does.
+    """The parts of the problem both peers build from (settings, model), as core/nlp/tracking.py does.
 
     Attributes:
         f: discrete map (x [n], u [m]) -> x+ [n] (model.discrete with the settings' method).

@@ -1,4 +1,4 @@
-"""What a benchmark variant is: a `Stepper` (core/closed_loop.py) that answers with a `Sample`.
+"""What a benchmark variant is: a `Stepper` (core/loop/closed_loop.py) that answers with a `Sample`.
 
 Every variant (our controller with any solver path, the paper's Opti + IPOPT formulation,
 do-mpc) is driven by the one closed-loop driver (`core.closed_loop.ClosedLoop`), the same one
@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.closed_loop import Stepper
-from ..core.controller import NmpcController
-from ..core.models import Model
-from ..core.regions import Region
-from ..core.settings import ControllerSettings
-from ..core.status import StepStatus
+from ..core.config.settings import ControllerSettings
+from ..core.loop.closed_loop import Stepper
+from ..core.problem.models import Model
+from ..core.problem.regions import Region
+from ..core.sample.controller import NmpcController
+from ..core.sample.status import StepStatus
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Closed-loop counterfactual replay: a recorded run driven again through the plant model under a new tuning.
 
-From the state of the bag's first solved sample, the one closed-loop driver (core/closed_loop.py)
+From the state of the bag's first solved sample, the one closed-loop driver (core/loop/closed_loop.py)
 runs as many samples as the bag has, with the bag's timeline: the target and the regions in force
 at each recorded sample, and the run-time settings the controller's diagnostics reported (mu,
 kappa), except those the caller overrides. The states now react to the changed controller, unlike
@@ -21,14 +21,14 @@ from typing import Any
 import numpy as np
 
 from ..bag.analysis import RecordedRun, run_metrics
-from ..core.closed_loop import ClosedLoopRun, run_closed_loop
-from ..core.controller import NmpcController
+from ..core.config.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
 from ..core.errors import ConfigError
-from ..core.metrics import max_abs_product, outputs, penetration, time_stats, tracking
-from ..core.models import make_model
-from ..core.regions import Region
-from ..core.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
-from ..core.status import StepStatus
+from ..core.loop.closed_loop import ClosedLoopRun, run_closed_loop
+from ..core.loop.metrics import max_abs_product, outputs, penetration, time_stats, tracking
+from ..core.problem.models import make_model
+from ..core.problem.regions import Region
+from ..core.sample.controller import NmpcController
+from ..core.sample.status import StepStatus
 
 #: the metrics compared side by side (and tabulated by a sweep), in this order
 COMPARED = ("settling_step", "final_error", "max_penetration", "max_abs_x1x2", "solve_ms_median", "solve_ms_max",
@@ -134,7 +134,7 @@ def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: st
 
 
 def loop_metrics(run: ClosedLoopRun, settings: ControllerSettings) -> dict[str, Any]:
-    """COMPARED metrics of a driven run (definitions: core/metrics.py), the target being the last one."""
+    """COMPARED metrics of a driven run (definitions: core/loop/metrics.py), the target being the last one."""
     model = make_model(settings.model)
     y = outputs(model, run.x, run.u)
     target = run.targets[-1]

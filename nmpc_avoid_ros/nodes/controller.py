@@ -30,7 +30,7 @@ when that state arrived, in lockstep on sim time its sample time: moving obstacl
 from it). Obstacles: `moving_regions`, `obstacle_resets` (velocity estimates reset) and
 `last_obstacle_issue` (the latest refusal or reset of a marker, with its reason).
 
-Stability certificate (core/certificate.py, docs/certificate.md): every sample checks the decrease
+Stability certificate (core/loop/certificate.py, docs/certificate.md): every sample checks the decrease
 of the value function; diagnostics carry `value_function`, `decrease`, `decrease_bound`,
 `certificate_margin`, `certificate` (checked, or why not, and what V_N is the cost of) and the
 counter `certificate_violations`. A violation is WARN with its margin, `certificate_error_after` in a
@@ -55,11 +55,11 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
-from ..core.certificate import CertificateSample, StabilityCertificate
-from ..core.controller import NmpcController
+from ..core.config.settings import NODE_SETTINGS, SETTINGS, NodeSettings
 from ..core.errors import ConfigError, InputError, NmpcError
-from ..core.settings import NODE_SETTINGS, SETTINGS, NodeSettings
-from ..core.step_result import StepResult
+from ..core.loop.certificate import CertificateSample, StabilityCertificate
+from ..core.sample.controller import NmpcController
+from ..core.sample.step_result import StepResult
 from ..ros.conversions import array_to_vector
 from ..ros.markers import RegionStore
 from ..ros.parameters import (
@@ -76,7 +76,7 @@ from .controller_io import INTERFACES
 from .controller_views import ControllerViews
 from .runner import run_node
 
-#: the node's own parameters (declared in core/settings.py NodeSettings)
+#: the node's own parameters (declared in core/config/settings.py NodeSettings)
 NODE_SPECS = node_settings_specs()
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE

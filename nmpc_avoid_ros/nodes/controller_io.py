@@ -21,8 +21,8 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
-from ..core.models import Model
-from ..core.settings import NodeSettings
+from ..core.config.settings import NodeSettings
+from ..core.problem.models import Model
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.parameters import STREAM_QOS
 from ..ros.robot import check_robot_model, goal_to_target, odometry_to_state, velocity_command

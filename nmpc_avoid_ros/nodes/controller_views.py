@@ -10,9 +10,9 @@ from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ..core.certificate import LAYOUT, CertificateSample
-from ..core.settings import ControllerSettings
-from ..core.step_result import StepResult
+from ..core.config.settings import ControllerSettings
+from ..core.loop.certificate import LAYOUT, CertificateSample
+from ..core.sample.step_result import StepResult
 from ..ros.parameters import STREAM_QOS
 from ..ros.visualization import prediction_path, regions_markers, stats_array, steady_state_marker, target_marker
 from .controller_io import ArrayInterface, RobotInterface

@@ -22,7 +22,7 @@ from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from ..core.errors import ConfigError
-from ..core.scene import load_scene
+from ..core.loop.scene import load_scene
 from ..ros.markers import delete_all_marker, region_marker
 from ..ros.parameters import LATCHED_QOS, STREAM_QOS, ParamSpec, declare
 from .runner import run_node

@@ -27,10 +27,10 @@ from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray
 
-from ..core.closed_loop import ContinuousPlant, DiscretePlant
+from ..core.config.settings import INTERFACES
 from ..core.errors import ConfigError, InputError
-from ..core.models import MODELS, make_model
-from ..core.settings import INTERFACES
+from ..core.loop.closed_loop import ContinuousPlant, DiscretePlant
+from ..core.problem.models import MODELS, make_model
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.parameters import STREAM_QOS, ParamSpec, declare, finite_vector
 from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command

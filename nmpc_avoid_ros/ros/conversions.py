@@ -14,7 +14,7 @@ from builtin_interfaces.msg import Duration, Time
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from ..core.errors import InputError
-from ..core.step_result import validate_vector
+from ..core.sample.step_result import validate_vector
 
 _NS_PER_S = 1_000_000_000
 

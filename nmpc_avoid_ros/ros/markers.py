@@ -15,7 +15,7 @@ Moving regions: `header.stamp` is the time the pose was valid. A velocity (plane
 marker's plane) is either given explicitly as the token `velocity=<vx>,<vy>` in the marker's
 `text` (RViz and Foxglove ignore `text` for these types, so the marker draws the same; other
 tokens are left alone; a zero stamp then means "valid when received"), or estimated from
-successive updates of the same (ns, id) with non-zero stamps (core/motion.py: filtered, reset on
+successive updates of the same (ns, id) with non-zero stamps (core/problem/motion.py: filtered, reset on
 jumps, bounded by max_speed). A marker with a zero stamp and no explicit velocity is static.
 
 A bad marker is rejected on its own, with a reason, and the previous region under its key stays
@@ -34,8 +34,8 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.errors import InputError, RegionError
-from ..core.motion import VelocityEstimator
-from ..core.regions import FRAMES, Ellipse, Polygon, Region, SlotLayout, rotated_box
+from ..core.problem.motion import VelocityEstimator
+from ..core.problem.regions import FRAMES, Ellipse, Polygon, Region, SlotLayout, rotated_box
 from .conversions import seconds_to_duration, seconds_to_time, stamp_to_seconds
 
 ADD = 0  # Marker.ADD == Marker.MODIFY == 0 in ROS 2

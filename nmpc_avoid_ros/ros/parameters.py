@@ -1,6 +1,6 @@
 """ROS parameters <-> core settings, and the named QoS profiles of docs/design.md ("Interfaces").
 
-The controller's parameters are declared once, in core/settings.py (core/schema.py explains how);
+The controller's parameters are declared once, in core/config/settings.py (core/config/schema.py explains how);
 here each declaration becomes a ParamSpec: a ParameterDescriptor with the description, the
 allowed values, the range and read_only for what is not run time. The plant and the recorder
 declare their ParamSpecs directly. `markdown_table` writes any node's table for the README.
@@ -18,8 +18,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..core.schema import Setting
-from ..core.settings import NODE_SETTINGS, SETTINGS, ControllerSettings, NodeSettings
+from ..core.config.schema import Setting
+from ..core.config.settings import NODE_SETTINGS, SETTINGS, ControllerSettings, NodeSettings
 
 #: state, command, diagnostics, prediction, clock: reliable, keep last 100. A reliable writer drops
 #: samples a reader has not acknowledged once its history is full: with 10, a recorder busy for
@@ -56,7 +56,7 @@ class ParamSpec:
         return d
 
 
-#: ROS parameter type of each kind of setting (core/schema.py)
+#: ROS parameter type of each kind of setting (core/config/schema.py)
 ROS_TYPES = {
     "float": ParameterType.PARAMETER_DOUBLE, "int": ParameterType.PARAMETER_INTEGER,
     "bool": ParameterType.PARAMETER_BOOL, "str": ParameterType.PARAMETER_STRING,

@@ -22,7 +22,7 @@ from geometry_msgs.msg import PoseStamped, Quaternion, Twist, TwistStamped
 from nav_msgs.msg import Odometry
 
 from ..core.errors import ConfigError, InputError
-from ..core.models import Model
+from ..core.problem.models import Model
 
 ROBOT_STATES = ("x", "y", "theta")
 ROBOT_INPUTS = ("v", "omega")

@@ -19,7 +19,7 @@ from nav_msgs.msg import Path
 from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ..core.regions import Region
+from ..core.problem.regions import Region
 from .markers import delete_all_marker, region_marker, yaw_to_quaternion
 
 #: labels of the `~/stats` vector, in order (Foxglove plots `/controller/stats.data[i]`)

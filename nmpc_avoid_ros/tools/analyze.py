@@ -24,8 +24,8 @@ from ..bag.figures import Trace, run_figures, value_function_plot
 from ..bag.mcap_io import BagError, load_bag
 from ..bag.report import report_data
 from ..bag.report_page import write_report
+from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
-from ..core.settings import ControllerSettings, default_config_path, load_params_file
 
 
 def analyze(bags: list[Path], out: Path, config: Path | None = None, labels: list[str] | None = None,

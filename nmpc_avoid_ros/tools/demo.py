@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.config.settings import default_config_path
 from ..core.errors import NmpcError
-from ..core.metrics import SETTLING_TOLERANCE, settling_step
-from ..core.settings import default_config_path
-from ..core.status import StepStatus
+from ..core.loop.metrics import SETTLING_TOLERANCE, settling_step
+from ..core.sample.status import StepStatus
 from .analyze import analyze
 from .processes import NodeProcess, count_messages, recorder_counts, settle
 from .simulate import load_scenario, simulate

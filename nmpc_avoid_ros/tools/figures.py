@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ..bag.figures import Trace, phase_portrait, time_series
-from ..core.closed_loop import PLANTS, ClosedLoopRun
 from ..core.errors import NmpcError
+from ..core.loop.closed_loop import PLANTS, ClosedLoopRun
 from .simulate import load_scenario, simulate
 
 

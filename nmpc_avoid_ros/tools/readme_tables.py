@@ -3,8 +3,8 @@
     make readme                                          # rewrite the tables in README.md
     python -m nmpc_avoid_ros.tools.readme_tables --check  # exit 1 and show the difference if stale
 
-The controller's rows come from core/settings.py (ControllerSettings and NodeSettings, declared
-through core/schema.py), the plant's and recorder's from their ParamSpecs. Each table is the
+The controller's rows come from core/config/settings.py (ControllerSettings and NodeSettings, declared
+through core/config/schema.py), the plant's and recorder's from their ParamSpecs. Each table is the
 block of `|` lines after the node's heading (### `name`) in README.md; test_settings_schema.py
 fails while README and declarations differ.
 """

@@ -32,10 +32,10 @@ import numpy as np
 
 from ..bag.analysis import RecordedRun, load_run
 from ..bag.mcap_io import BagError, load_bag
-from ..core.closed_loop import PLANTS
-from ..core.controller import NmpcController
+from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
-from ..core.settings import ControllerSettings, default_config_path, load_params_file
+from ..core.loop.closed_loop import PLANTS
+from ..core.sample.controller import NmpcController
 from .replay_closed_loop import closed_loop_main
 
 LATCHED_TOPICS = ("target", "obstacles")

@@ -14,8 +14,8 @@ import numpy as np
 from ..bag.analysis import RecordedRun, load_run
 from ..bag.figures import Trace, phase_portrait, run_figures, value_function_plot
 from ..bag.mcap_io import BagError
+from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
-from ..core.settings import ControllerSettings, default_config_path, load_params_file
 from ..evaluation.counterfactual import (
     Counterfactual,
     metrics_table,

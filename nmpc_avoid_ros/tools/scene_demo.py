@@ -37,9 +37,9 @@ from typing import Any
 
 import yaml
 
+from ..core.config.settings import ControllerSettings, load_params_file
 from ..core.errors import NmpcError
-from ..core.scene import Scene, load_scene
-from ..core.settings import ControllerSettings, load_params_file
+from ..core.loop.scene import Scene, load_scene
 from .analyze import analyze
 from .processes import NodeProcess, count_messages, recorder_counts, settle
 

@@ -5,7 +5,7 @@
     python -m nmpc_avoid_ros simulate --scene config/scenes/crossing_walker.yaml \
         --predict-obstacles off --json out/walker.json
 
-With a scene (core/scene.py: targets over time, moving obstacles) the JSON also holds the pose of
+With a scene (core/loop/scene.py: targets over time, moving obstacles) the JSON also holds the pose of
 every obstacle at every sample (`obstacles`) and each obstacle's minimum clearance
 (`min_clearance`, -g with g the region depth, > 0 outside).
 """
@@ -21,14 +21,14 @@ from typing import Any
 
 import numpy as np
 
-from ..core.closed_loop import PLANTS, ClosedLoopRun, run_closed_loop
-from ..core.controller import NmpcController
+from ..core.config.settings import SOLVER_PATHS, ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
-from ..core.metrics import max_abs_product, outputs, tracking
-from ..core.models import Model
-from ..core.scene import Scene, load_scene, obstacle_track
-from ..core.settings import SOLVER_PATHS, ControllerSettings, default_config_path, load_params_file
-from ..core.status import StepStatus
+from ..core.loop.closed_loop import PLANTS, ClosedLoopRun, run_closed_loop
+from ..core.loop.metrics import max_abs_product, outputs, tracking
+from ..core.loop.scene import Scene, load_scene, obstacle_track
+from ..core.problem.models import Model
+from ..core.sample.controller import NmpcController
+from ..core.sample.status import StepStatus
 
 
 @dataclass
@@ -82,7 +82,7 @@ def scene_scenario(scene: Scene, **overrides: Any) -> Scenario:
 
 
 def summarize(run: ClosedLoopRun, target: list[float], model: Model) -> dict[str, Any]:
-    """Settling step (|y - y_t| < 0.05 for good), final error, max |x1 x2|, solve times (core/metrics.py)."""
+    """Settling step (|y - y_t| < 0.05 for good), final error, max |x1 x2|, solve times (core/loop/metrics.py)."""
     x = run.x
     quality = tracking(outputs(model, x, run.u), target, run.sample_time)
     summary: dict[str, Any] = {

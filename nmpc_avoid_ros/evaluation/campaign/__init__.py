@@ -10,6 +10,6 @@ Where to extend it (each is a change in one place):
   scoring.classify so that rebuilt summaries use the current definition.
 * a summary key: one entry in summary.summarize (and summary.format_summary to print it;
   sweep.SWEEP_KEYS to compare it across a sweep).
-* a closed-loop figure (settling, penetration, clearance, ...): core/metrics.py, shared with
+* a closed-loop figure (settling, penetration, clearance, ...): core/loop/metrics.py, shared with
   `analyze` and `bench`.
 """

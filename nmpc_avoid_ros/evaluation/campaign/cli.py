@@ -32,9 +32,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ...core.closed_loop import PLANTS
+from ...core.config.settings import load_params_file
 from ...core.errors import NmpcError
-from ...core.settings import load_params_file
+from ...core.loop.closed_loop import PLANTS
 from .running import (
     JSON_NAME,
     JSONL_NAME,

@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 
 from ...bag.figures import draw_region, plt, shade_product_region
-from ...core.metrics import SETTLING_TOLERANCE
-from ...core.regions import Region
-from ...core.settings import ControllerSettings, load_params_file
+from ...core.config.settings import ControllerSettings, load_params_file
+from ...core.loop.metrics import SETTLING_TOLERANCE
+from ...core.problem.regions import Region
 from .scenarios import FAMILIES, spec_ellipses
 
 FAMILY_TITLES = {f.key: f.title for f in FAMILIES}

@@ -17,12 +17,12 @@ from collections.abc import Sequence
 import casadi as ca
 import numpy as np
 
+from ...core.config.settings import ControllerSettings
 from ...core.errors import ConfigError
-from ...core.expressions import parse_keep_in
-from ...core.metrics import region_depth
-from ...core.models import Model
-from ...core.regions import Region
-from ...core.settings import ControllerSettings
+from ...core.loop.metrics import region_depth
+from ...core.problem.expressions import parse_keep_in
+from ...core.problem.models import Model
+from ...core.problem.regions import Region
 
 #: numerical slack of the lambda * Z test of a candidate steady state (the projection's accuracy)
 ADMISSIBLE_SLACK = 1e-6

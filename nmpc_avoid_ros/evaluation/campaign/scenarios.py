@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from ...core.closed_loop import RegionSchedule
-from ...core.models import Model, make_model
-from ...core.regions import Ellipse, Region
-from ...core.settings import ControllerSettings, default_config_path, load_params_file
+from ...core.config.settings import ControllerSettings, default_config_path, load_params_file
+from ...core.loop.closed_loop import RegionSchedule
+from ...core.problem.models import Model, make_model
+from ...core.problem.regions import Ellipse, Region
 from .reachability import planar_passage, vdp_passage
 
 #: an ellipse never contains the initial point: its depth there is below -START_MARGIN

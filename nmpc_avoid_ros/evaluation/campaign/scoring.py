@@ -10,12 +10,12 @@ Definitions (per scenario; y is the output, K the last sample; y* and y~ from re
   'obstacle_covers_target' if it stopped at y~ != y* (the avoidance cost moves the equilibrium);
   otherwise it stopped short of y~ too, 'no_passage' when the regions leave no admissible way from
   where it stopped to y~ (the family's passage test), else 'local_minimum'.
-* penetration, clearance: core/metrics.py (keep-in expressions and regions in force per sample).
+* penetration, clearance: core/loop/metrics.py (keep-in expressions and regions in force per sample).
 * solver failure: a sample whose solver status is not Solve_Succeeded/Solved_To_Acceptable_Level
   (budget cuts with a feasible iterate count here, as 'truncated'); fallback: a sample that applied
   the controller's fallback. Recursive feasibility: among samples k >= 1 whose predecessor's solve
   was usable (ok/truncated), the share whose own solve was usable.
-* certificate (core/certificate.py, docs/certificate.md): checked samples and violations of the
+* certificate (core/loop/certificate.py, docs/certificate.md): checked samples and violations of the
   value-function decrease, also among the nominal samples (the measured state within
   NOMINAL_MISMATCH of the previous plan's x(1)), and the largest such model mismatch.
 
@@ -37,11 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from ...core.closed_loop import ClosedLoopRun, run_closed_loop
-from ...core.controller import NmpcController
+from ...core.config.settings import ControllerSettings
 from ...core.errors import NmpcError
-from ...core.fallback import CANDIDATES as FALLBACK_CANDIDATES
-from ...core.metrics import (
+from ...core.loop.closed_loop import ClosedLoopRun, run_closed_loop
+from ...core.loop.metrics import (
     SETTLING_TOLERANCE,
     keep_in_values,
     outputs,
@@ -50,11 +49,12 @@ from ...core.metrics import (
     settling_step,
     time_stats,
 )
-from ...core.models import Model
-from ...core.nlp import SOLVED
-from ...core.regions import Region
-from ...core.settings import ControllerSettings
-from ...core.status import StepStatus
+from ...core.nlp.tracking import SOLVED
+from ...core.problem.models import Model
+from ...core.problem.regions import Region
+from ...core.sample.controller import NmpcController
+from ...core.sample.fallback import CANDIDATES as FALLBACK_CANDIDATES
+from ...core.sample.status import StepStatus
 from .reachability import ReachableSet
 from .scenarios import Family, spec_ellipses
 
@@ -71,7 +71,7 @@ PROBE_SOLVE_TIME = 20.0
 #: one character per sample in the stored trace
 STATUS_CODES = {StepStatus.OK: ".", StepStatus.TRUNCATED: "t", StepStatus.FALLBACK_SHIFT: "s",
                 StepStatus.FALLBACK_STEADY: "S", StepStatus.FALLBACK_SAFE: "X", StepStatus.FALLBACK_RECOVERY: "R"}
-#: the fallback candidates (core/fallback.py), as statuses
+#: the fallback candidates (core/sample/fallback.py), as statuses
 FALLBACK_KINDS = tuple(StepStatus(f"fallback_{kind}") for kind in FALLBACK_CANDIDATES)
 #: penetration from this sample on is where the input can act (x(1) is fixed by x(0), u(0) partly)
 FIRST_ACTED_SAMPLE = 2
@@ -190,7 +190,7 @@ def outcome_section(s: Scored) -> dict[str, Any]:
 
 
 def avoidance_section(s: Scored) -> dict[str, Any]:
-    """Penetration of the keep-in set and of the regions, clearance (core/metrics.py)."""
+    """Penetration of the keep-in set and of the regions, clearance (core/loop/metrics.py)."""
     return penetration(s.settings, s.model, s.run.x, s.run.u, s.run.regions, s.y)
 
 
@@ -224,7 +224,7 @@ def robustness_section(s: Scored) -> dict[str, Any]:
     penetration_after_first_step: max g over x(2..K) (0 if never inside); fallback_penetration: max
     g over the `horizon` states after each fallback sample (0 without fallbacks); escapes_tried:
     samples that solved escape guesses; escapes_taken: samples whose plan came from one; passages:
-    entries into the passage mode (core/passage.py); passage_samples: samples spent in it.
+    entries into the passage mode (core/sample/passage.py); passage_samples: samples spent in it.
     """
     run = s.run
     keep = keep_in_values(s.settings, s.model, run.x, run.u)
@@ -247,7 +247,7 @@ def robustness_section(s: Scored) -> dict[str, Any]:
 
 
 def certificate_section(s: Scored) -> dict[str, Any]:
-    """The stability certificate (core/certificate.py): samples checked and violated, overall and among
+    """The stability certificate (core/loop/certificate.py): samples checked and violated, overall and among
     the nominal ones (the measured state within NOMINAL_MISMATCH of the previous plan's x(1)), and the
     largest model mismatch."""
     checked = [c for c in s.run.certificate if c["checked"]]

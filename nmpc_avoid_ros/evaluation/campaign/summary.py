@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ...core.metrics import SETTLING_TOLERANCE, time_stats
+from ...core.loop.metrics import SETTLING_TOLERANCE, time_stats
 from .scoring import FALLBACK_KINDS, NEAR_TOLERANCE, REACHABLE_TOLERANCE, REST_TOLERANCE, REST_WINDOW
 
 
@@ -169,7 +169,7 @@ DEFINITIONS = {
     "stopped_early": "the closed loop ended before its last sample (e.g. the plant state became non-finite); such "
                      "runs count as not converged and are left out of max_penetration",
     "fallback": "sample that applied the controller's fallback (shift, steady, safe input or recovery solve: the "
-                "candidate predicting the least violation, core/fallback.py)",
+                "candidate predicting the least violation, core/sample/fallback.py)",
     "penetration_after_first_step": "max over runs (x0 in X_N, not stopped early) of the largest g over x(2..K), "
                                     "where the input can act; 0 if never inside",
     "fallback_penetration": "max over runs and fallback samples k of the largest g over x(k+1..k+N)",
@@ -177,9 +177,9 @@ DEFINITIONS = {
                             "solve) still predicts a violation over 1e-3: a region cannot be avoided from x0 "
                             "(X_N has the hard constraints only); penetration_after_first_step_avoidable_start "
                             "and fallback_penetration_avoidable_start leave these runs (and x0 outside X_N) out",
-    "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/candidates.py); "
+    "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/sample/candidates.py); "
                "escapes_taken: samples whose plan came from one; passages: entries into the passage mode "
-               "(core/passage.py, the longer escape_horizon), passage_samples: samples spent in it",
+               "(core/sample/passage.py, the longer escape_horizon), passage_samples: samples spent in it",
     "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
     "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
                           "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",

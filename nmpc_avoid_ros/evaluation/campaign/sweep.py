@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ...core.config.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
 from ...core.errors import ConfigError
-from ...core.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
 
 #: summary keys compared across the values (table rows and figure panels)
 SWEEP_KEYS = ("share_converged", "share_near", "share_near_admissible", "stop_short", "max_penetration",

@@ -6,7 +6,7 @@ budget rule and one ranking:
 
 * budget: the first start is always solved; a further one only while the time spent plus the
   slowest call so far stays below the time left (a call's own limit is fixed when its solver is
-  built; the worker abandons any call at the sample's deadline, core/worker.py);
+  built; the worker abandons any call at the sample's deadline, core/nlp/worker.py);
 * ranking: a usable plan (hard constraints met: solved, or violation below the feasibility
   tolerance) that predicts no penetration beyond VIOLATION_TOLERANCE beats one that does, then the
   lower cost V_o + V_a + tracking; `admit` may refuse a candidate with a reason (an escape must not
@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .nlp import BUDGET_EXHAUSTED, SOLVED, NlpBase
+from .tracking import BUDGET_EXHAUSTED, SOLVED, NlpBase
 
 #: predicted violations up to this count as none (region g and state units): a plan's own penalty optimum
-#: predicts ~1e-4 of penetration, which must not lose to a recovery solve over rounding (core/fallback.py)
+#: predicts ~1e-4 of penetration, which must not lose to a recovery solve over rounding (core/sample/fallback.py)
 VIOLATION_TOLERANCE = 1e-3
 #: solver status of a start whose guess or parameters were not finite (no solver was called)
 NON_FINITE_GUESS = "non_finite_guess"

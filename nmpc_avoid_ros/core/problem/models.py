@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 DISCRETISATIONS = ("euler", "rk4")
 

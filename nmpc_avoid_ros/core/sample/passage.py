@@ -2,7 +2,7 @@
 
 Why: the terminal equality x(N) = x_a asks a plan to go from rest in front of a region to rest
 beyond it within N samples. With van der Pol's N = 5 (2.5 s) and the keep-in |x1 x2| <= 2 that
-is impossible past a long region: the stall escape's guesses (core/candidates.py) cannot help,
+is impossible past a long region: the stall escape's guesses (core/sample/candidates.py) cannot help,
 and the loop rests in front of it (campaign vdp-0100 at x1 = 3.757, target -7.57; vdp-0020 passes
 with N = 15, not with N = 5).
 
@@ -34,13 +34,13 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from ..config.settings import ControllerSettings
+from ..errors import ConfigError
+from ..nlp.search import VIOLATION_TOLERANCE, Candidate, Start
+from ..nlp.tracking import NlpBase
+from ..problem.models import Model
+from ..problem.regions import Region
 from .candidates import EscapeGuesses, guess_batch, guess_start
-from .errors import ConfigError
-from .models import Model
-from .nlp import NlpBase
-from .regions import Region
-from .search import VIOLATION_TOLERANCE, Candidate, Start
-from .settings import ControllerSettings
 from .step_result import Plan
 
 #: a long plan enters the mode only if its offset cost is below this times the short plan's
@@ -51,7 +51,7 @@ PASSAGE_REST = 5e-2
 
 class Passage:
     """The long-horizon NLP and its escape guesses (stateless: whether the controller is in the mode
-    lives in its SampleMemory, core/memory.py).
+    lives in its SampleMemory, core/sample/memory.py).
 
     `nlp` is None when `escape_horizon` is 0 (then nothing is ever tried).
     """

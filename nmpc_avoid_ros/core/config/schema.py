@@ -15,7 +15,7 @@ tuple[str, ...], optionally `| None` for "unset"). Everything else is derived fr
     - the README's parameter tables (tools/readme_tables.py writes them; a test keeps them equal).
 
 Adding a setting is a one-place change:
-    1. add the field with `setting(...)` to `ControllerSettings` (core/settings.py; it then also
+    1. add the field with `setting(...)` to `ControllerSettings` (core/config/settings.py; it then also
        enters `structure_key` unless runtime) or, for a parameter only the controller node uses,
        to `NodeSettings` there;
     2. use it where it acts (the NLP build, the controller step, or the node);
@@ -34,7 +34,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 #: the kinds of value a setting can hold (ROS: double, integer, bool, string and their arrays)
 KINDS = {float: "float", int: "int", bool: "bool", str: "str"}

@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .errors import ConfigError, RegionError
-from .models import Model
-from .regions import Ellipse, Polygon, Region, rotated_box
-from .settings import ControllerSettings, default_config_path
+from ..config.settings import ControllerSettings, default_config_path
+from ..errors import ConfigError, RegionError
+from ..problem.models import Model
+from ..problem.regions import Ellipse, Polygon, Region, rotated_box
 
 SHAPES = ("ellipse", "box", "polygon")
 PLANTS = ("euler", "continuous")

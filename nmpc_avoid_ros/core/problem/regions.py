@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .errors import RegionError
+from ..errors import RegionError
 
 FRAMES = ("state", "output")
 #: parameters per ellipse slot: active, in_state_frame, cx, cy, 1/a, 1/b, cos(yaw), sin(yaw),

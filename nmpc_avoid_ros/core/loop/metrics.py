@@ -26,10 +26,10 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from .expressions import parse_keep_in
-from .models import Model
-from .regions import Ellipse, Region, ellipse_g
-from .settings import ControllerSettings
+from ..config.settings import ControllerSettings
+from ..problem.expressions import parse_keep_in
+from ..problem.models import Model
+from ..problem.regions import Ellipse, Region, ellipse_g
 
 #: settled: |y - y_t| below this from some sample on, for good (the paper scenario's criterion)
 SETTLING_TOLERANCE = 0.05

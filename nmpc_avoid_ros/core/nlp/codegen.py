@@ -20,7 +20,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 #: environment variable that overrides the default cache folder
 CACHE_ENV = "NMPC_AVOID_ROS_CACHE"

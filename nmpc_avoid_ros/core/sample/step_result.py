@@ -1,6 +1,6 @@
 """What one controller sample returns (StepResult), the plan it keeps, and input validation.
 
-Split from core/controller.py so that the controller module holds the sample's logic only.
+Split from core/sample/controller.py so that the controller module holds the sample's logic only.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
-from .search import SearchReport
+from ..errors import InputError
+from ..nlp.search import SearchReport
 from .status import StepStatus
 
 
@@ -26,20 +26,20 @@ class StepResult:
         inputs: predicted inputs u(0..N-1) [N, m].
         y_a, x_a, u_a: artificial steady output [p], state [n], input [m].
         offset_cost, avoidance_cost, tracking_cost: V_o, V_a and the stage-cost sum of the plan.
-        status: what was applied (core/status.py): ok (solved), truncated (budget cut, feasible
+        status: what was applied (core/sample/status.py): ok (solved), truncated (budget cut, feasible
             iterate used), fallback_shift, fallback_steady, fallback_safe or fallback_recovery
-            (see core/fallback.py).
+            (see core/sample/fallback.py).
         solver_status: the solver's own return status.
         iterations: solver iterations; solve_time: wall time of the solve in s.
         budget_exhausted: True when the iteration or time budget cut the solve.
-        search: what the sample's search tried (core/search.py: phase, kept plan, one line per start);
+        search: what the sample's search tried (core/nlp/search.py: phase, kept plan, one line per start);
             `escape` renders it for people.
         horizon: stages of the NLP solved (or attempted) at this sample: the regular N, or
             escape_horizon in the passage mode (0: no solve, e.g. `coast`).
         fallback_reason: for a fallback, which candidate was applied and every candidate's
             predicted violation; predicted_violation: the applied one's (region g / state units).
         target: the output y* [p] the NLP tracked: y_t, or for a y_t out of reach its nearest
-            reachable output (core/projection.py); None where no sample was solved (`coast`).
+            reachable output (core/nlp/projection.py); None where no sample was solved (`coast`).
         region_unavoidable: the solved plan predicts a violation beyond VIOLATION_TOLERANCE (a
             region cannot be avoided from this state): the least-violating input was applied.
     """

@@ -30,10 +30,10 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .models import Model
-from .nlp import NlpBase
-from .regions import Ellipse, Region
-from .settings import ControllerSettings
+from ..config.settings import ControllerSettings
+from ..problem.models import Model
+from ..problem.regions import Ellipse, Region
+from .tracking import NlpBase
 
 
 class TieredNlp:

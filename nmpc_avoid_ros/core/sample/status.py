@@ -26,7 +26,7 @@ class StepStatus(StrEnum):
     FALLBACK_STEADY = "fallback_steady"
     #: no usable solve and no plan at all: the safe input (zero clipped to the input box)
     FALLBACK_SAFE = "fallback_safe"
-    #: every other candidate predicts a violation: a short solve minimising it (core/fallback.py)
+    #: every other candidate predicts a violation: a short solve minimising it (core/sample/fallback.py)
     FALLBACK_RECOVERY = "fallback_recovery"
 
     @property

@@ -23,9 +23,9 @@ from collections.abc import Sequence
 import casadi as ca
 import numpy as np
 
-from .models import Model
-from .nlp import problem_parts
-from .settings import ControllerSettings
+from ..config.settings import ControllerSettings
+from ..problem.models import Model
+from .tracking import problem_parts
 
 #: a projection further than this (output units, inf-norm) from y_t means y_t was out of reach
 OUT_OF_REACH = 1e-6

@@ -23,11 +23,11 @@ from typing import Any
 
 import yaml
 
-from .errors import ConfigError
-from .models import DISCRETISATIONS, MODELS
+from ..errors import ConfigError
+from ..problem.models import DISCRETISATIONS, MODELS
 from .schema import Setting, normalise, schema, setting
 
-#: solver paths: name -> one-line description (core/nlp.py builds them)
+#: solver paths: name -> one-line description (core/nlp/tracking.py builds them)
 SOLVER_PATHS: dict[str, str] = {
     "ipopt": "multiple shooting, IPOPT interior point (the reference)",
     "fatrop": "stage-wise formulation, FATROP structure-exploiting interior point",
@@ -41,7 +41,7 @@ SOLVERS = tuple(SOLVER_PATHS)
 class ControllerSettings:
     """Everything that defines the NMPC problem and its solver (defaults: the paper's example).
 
-    Each field is declared once with `setting(...)` (core/schema.py: type, default, range,
+    Each field is declared once with `setting(...)` (core/config/schema.py: type, default, range,
     run time or not, description). Units: times in seconds; bounds in the units of the model's
     states and inputs. Fields without `runtime=True` are baked into the NLP or its solver: a
     change needs a new controller. That includes the solver budgets max_iterations,
@@ -56,10 +56,10 @@ class ControllerSettings:
     horizon: int = setting(5, "prediction horizon N (samples)", low=1, high=2000)  # an upper limit keeps
     # a typo (horizon: 1e30) from hanging the NLP build; likewise for the other integer capacities
     escape_horizon: int = setting(0, "horizon of the passage mode's second NLP (samples), tried when y_a stalls in "
-                                     "front of a region the N-sample plan cannot pass (core/passage.py); 0: off, "
-                                     "else greater than horizon", low=0, high=2000)
+                                     "front of a region the N-sample plan cannot pass (core/sample/passage.py); "
+                                     "0: off, else greater than horizon", low=0, high=2000)
     escape_guesses_per_sample: int = setting(
-        0, "local-minimum escape and passage-mode guesses solved per sample (core/candidates.py); the rest "
+        0, "local-minimum escape and passage-mode guesses solved per sample (core/sample/candidates.py); the rest "
            "follow on the next samples while y_a stays stalled, so one sample's work stays bounded (a real-time "
            "path's worst sample); 0: all in one sample", runtime=True, low=0, high=1000)
     discretization: str = setting("euler", "prediction model discretisation: euler (as in the paper) or rk4",
@@ -89,7 +89,7 @@ class ControllerSettings:
     max_polygon_vertices: int = setting(8, "largest number of vertices of a polygon obstacle", low=3, high=64)
     ellipse_tiers: tuple[int, ...] = setting(
         (), "ellipse capacities of smaller copies of the regular NLP (no polygon slots), built once: a sample whose "
-            "regions fit one solves the smallest that does (core/tiers.py; a structure-exploiting solver pays for "
+            "regions fit one solves the smallest that does (core/nlp/tiers.py; a structure-exploiting solver pays for "
             "every slot, used or not); each below max_ellipses; empty: off", low=0, high=256)
     solver: str = setting("ipopt", "NLP solver path (simulate --solver list describes them)", choices=SOLVERS)
     codegen: bool = setting(False, "generate the solver's functions as C, compile them (cc) and cache the library "
@@ -204,7 +204,7 @@ INTERFACES = ("array", "robot")
 class NodeSettings:
     """The controller node's own parameters: not part of the NLP (nodes/controller.py applies them).
 
-    Declared like ControllerSettings (core/schema.py); the node checks the sizes of target and
+    Declared like ControllerSettings (core/config/schema.py); the node checks the sizes of target and
     safe_input against the model, which these declarations do not know.
     """
 
@@ -298,7 +298,7 @@ def load_params_file(path: str | Path) -> ParamsFile:
 
 def default_config_path() -> Path:
     """The shipped van der Pol params file: the source tree's, else the installed share/ copy."""
-    source = Path(__file__).resolve().parents[2] / "config" / "van_der_pol.yaml"
+    source = Path(__file__).resolve().parents[3] / "config" / "van_der_pol.yaml"
     installed = Path(sys.prefix) / "share" / "nmpc_avoid_ros" / "config" / "van_der_pol.yaml"
     for candidate in (source, installed):
         if candidate.exists():

@@ -20,7 +20,7 @@ import math
 from collections.abc import Collection, Hashable, Sequence
 from dataclasses import dataclass
 
-from .errors import InputError
+from ..errors import InputError
 
 #: weight of the newest raw velocity in the filtered estimate
 SMOOTHING = 0.5

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .models import Model
-from .nlp import SEARCH_SHARE, NlpBase, problem_parts
-from .search import VIOLATION_TOLERANCE
-from .settings import ControllerSettings
+from ..config.settings import ControllerSettings
+from ..nlp.search import VIOLATION_TOLERANCE
+from ..nlp.tracking import SEARCH_SHARE, NlpBase, problem_parts
+from ..problem.models import Model
 
 #: candidates in order of preference among equal predicted violations
 CANDIDATES = ("shift", "steady", "safe", "recovery")

@@ -22,11 +22,11 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .models import Model
-from .nlp import Buffered, NlpBase
-from .regions import Region
-from .search import Candidate, Start
-from .settings import ControllerSettings
+from ..config.settings import ControllerSettings
+from ..nlp.search import Candidate, Start
+from ..nlp.tracking import Buffered, NlpBase
+from ..problem.models import Model
+from ..problem.regions import Region
 from .warm_start import straight_line
 
 #: points on the steady-state segment from y_a to the target where blocking is checked
@@ -209,7 +209,7 @@ class EscapeGuesses:
         """
         y_rest = self.aim(self._output(x, np.zeros(self.model.m))[0].copy())
         x_r, u_r = (v.copy() for v in self._steady(y_rest))
-        # the straight line is the regular start's own guess (core/warm_start.py)
+        # the straight line is the regular start's own guess (core/sample/warm_start.py)
         y_a, states, inputs = straight_line(x, y_t, self.horizon, self.settings, self.model)
         return [Guess("rest", y_rest, self._path(x, [], x_r), np.tile(u_r, (self.horizon, 1))),
                 Guess("straight", y_a, states, inputs)]

@@ -11,7 +11,7 @@ parameters of k+1) - V_N(k), which equals the expression above term by term (a t
 needs nothing but the NLP's own cost terms whatever the regions and the model, and places moving
 regions at the stage times of k+1.
 
-In the passage mode (core/passage.py) the plans come from the NLP with the longer horizon: the
+In the passage mode (core/sample/passage.py) the plans come from the NLP with the longer horizon: the
 same inequality holds for it, and each sample is checked with the NLP of its plan's horizon. A
 sample whose horizon differs from the previous one (entering or leaving the mode) is not checked:
 V_N of two horizons are different functions, and their difference bounds nothing.
@@ -33,10 +33,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .controller import NmpcController
-from .regions import Region
-from .status import StepStatus
-from .step_result import StepResult
+from ..problem.regions import Region
+from ..sample.controller import NmpcController
+from ..sample.status import StepStatus
+from ..sample.step_result import StepResult
 
 #: the per-sample vector of `~/certificate` (std_msgs/Float64MultiArray), in this order
 LAYOUT = ("value_function", "decrease", "decrease_bound", "margin", "tolerance", "checked", "violated",

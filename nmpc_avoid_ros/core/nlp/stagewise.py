@@ -1,4 +1,4 @@
-"""The same NLP as core/nlp.py, written stage by stage for structure-exploiting solvers.
+"""The same NLP as core/nlp/tracking.py, written stage by stage for structure-exploiting solvers.
 
 FATROP and the SQP/HPIPM paths solve optimal-control problems whose variables and constraints
 come in stages, each coupled only to the next by the dynamics. The tracking problem has one
@@ -28,12 +28,12 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .errors import ConfigError
-from .models import Model, make_model
-from .nlp import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp, check_sizes, depth_function, problem_parts
-from .settings import ControllerSettings
+from ..config.settings import ControllerSettings
+from ..errors import ConfigError
+from ..problem.models import Model, make_model
+from .tracking import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp, check_sizes, depth_function, problem_parts
 
-#: iteration budget of a cold start (no previous plan), also in core/controller.py
+#: iteration budget of a cold start (no previous plan), also in core/sample/controller.py
 COLD_START_ITERATIONS = 200
 
 

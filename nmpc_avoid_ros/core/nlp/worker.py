@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .nlp import NlpBase
+    from .tracking import NlpBase
 
 #: solver status of a call that did not answer by its deadline (the child was killed)
 ABANDONED = "Abandoned_At_Deadline"

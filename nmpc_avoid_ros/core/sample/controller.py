@@ -2,18 +2,18 @@
 
 `NmpcController.step` reads as the sample does (docs/design.md, "The sample"):
 
-* prepare: validate x and y_t, track y_t's nearest reachable output (core/projection.py), pack the
-  parameters, set the deadline of the sample's solver calls (core/worker.py);
-* search (core/search.py, one budget rule and one ranking): the regular starts (the shifted plan;
+* prepare: validate x and y_t, track y_t's nearest reachable output (core/nlp/projection.py), pack the
+  parameters, set the deadline of the sample's solver calls (core/nlp/worker.py);
+* search (core/nlp/search.py, one budget rule and one ranking): the regular starts (the shifted plan;
   a cold start's resting plan, straight line and reference; a budget-cut iterate continued; the
   passage mode's long plan), then, from the plan found, the local-minimum escape guesses (a plan
-  that stalls in front of a blocking region, or predicts penetration: core/candidates.py) or the
-  passage NLP's guesses (core/passage.py);
-* apply the best plan, or fall back (core/fallback.py: the shifted plan, u_a, the safe input or a
+  that stalls in front of a blocking region, or predicts penetration: core/sample/candidates.py) or the
+  passage NLP's guesses (core/sample/passage.py);
+* apply the best plan, or fall back (core/sample/fallback.py: the shifted plan, u_a, the safe input or a
   recovery solve, whichever predicts the least violation);
 * guard: a plan that still predicts penetration gives way to the least-violating input.
 
-What carries over between samples is one SampleMemory (core/memory.py); what the search did is the
+What carries over between samples is one SampleMemory (core/sample/memory.py); what the search did is the
 result's SearchReport.
 """
 
@@ -25,23 +25,23 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..config.settings import RUNTIME_FIELDS, ControllerSettings
+from ..errors import ConfigError, InputError
+from ..nlp.projection import TargetProjection
+from ..nlp.search import VIOLATION_TOLERANCE, Candidate, SearchReport, Start, search
+from ..nlp.stagewise import COLD_START_ITERATIONS, make_nlp
+from ..nlp.tiers import TieredNlp
+from ..nlp.tracking import SEARCH_SHARE, NlpBase, TrackingNlp
+from ..nlp.worker import SolveWorker
+from ..problem.models import Model
+from ..problem.regions import Region
 from .candidates import EscapeGuesses, escape_admission, guess_batch, guess_start
-from .errors import ConfigError, InputError
 from .fallback import FallbackSelector
 from .memory import Sample, SampleMemory
-from .models import Model
-from .nlp import SEARCH_SHARE, NlpBase, TrackingNlp
 from .passage import Passage
-from .projection import TargetProjection
-from .regions import Region
-from .search import VIOLATION_TOLERANCE, Candidate, SearchReport, Start, search
-from .settings import RUNTIME_FIELDS, ControllerSettings
-from .stagewise import COLD_START_ITERATIONS, make_nlp
 from .status import StepStatus
 from .step_result import Plan, StepResult, validate_vector
-from .tiers import TieredNlp
 from .warm_start import initial_guess
-from .worker import SolveWorker
 
 #: samples without a new escape attempt after one that found no better plan (the scene is static)
 ESCAPE_RETRY_SAMPLES = 10
@@ -93,15 +93,15 @@ class NmpcController:
                                 self.model)
         self.passage = Passage(long_nlp, self.nlp, self.model, self.settings)
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
-        # the regular NLP solved on the smallest ellipse tier that holds the regions (core/tiers.py)
+        # the regular NLP solved on the smallest ellipse tier that holds the regions (core/nlp/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
         self.tiered.set_regions(self._regions)  # no regions yet: the smallest tier
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
-        #: y_t -> its nearest reachable output y* (core/projection.py): the target the NLP tracks
+        #: y_t -> its nearest reachable output y* (core/nlp/projection.py): the target the NLP tracks
         self.project_target = TargetProjection(self.settings, self.model)
         # every solver call of the search runs in a child that is abandoned at the sample's deadline
-        # (core/worker.py): built last, so that the child holds every NLP
+        # (core/nlp/worker.py): built last, so that the child holds every NLP
         nlps = [self.nlp, self.cold_nlp, long_nlp, *(tier for _, tier in self.tiered.tiers)]
         self.worker = SolveWorker([nlp for nlp in nlps if nlp is not None])
         for nlp in nlps:
@@ -115,7 +115,7 @@ class NmpcController:
         Counted where each is built (`solver_builds` of NlpBase and FallbackSelector): the solver
         path's own, a fast path's copy with the cold-start budget, the fast paths' cold-start
         reference (IPOPT), the fallback's recovery solve, the passage mode's long NLP and the target
-        projection (core/projection.py). All are
+        projection (core/nlp/projection.py). All are
         built in the constructor: nothing at run time (a target, obstacles, mu, the weights, entering
         or leaving the passage mode) adds to it.
         """
@@ -189,7 +189,7 @@ class NmpcController:
     def sample_budget(self) -> float:
         """The next step's time bound, s: max_solve_time, or for a cold start (no plan yet, or a re-seed
         through the cold-start solvers) COLD_START_TIME_FACTOR times it. The search's solver calls end by
-        SEARCH_SHARE of it (core/worker.py), the fallback's recovery solve within the rest."""
+        SEARCH_SHARE of it (core/nlp/worker.py), the fallback's recovery solve within the rest."""
         return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if self._cold() else 1.0)
 
     def _cold(self) -> bool:
@@ -282,7 +282,7 @@ class NmpcController:
     def _regular_starts(self, sample: Sample) -> tuple[list[Start], str]:
         """The sample's first starts and their phase: the passage mode's shifted long plan; a budget-cut
         iterate continued; a cold start's guesses (on an ellipse tier: the resting plan, then the straight
-        line; then the SQP path itself; then the reference, core/tiers.py and docs/design.md); or the
+        line; then the SQP path itself; then the reference, core/nlp/tiers.py and docs/design.md); or the
         shifted plan (on the tier that holds the regions)."""
         mem, s, x, y_t = self.memory, self.settings, sample.x, sample.y_t
         if mem.passage:
@@ -305,7 +305,7 @@ class NmpcController:
         return starts, "cold"
 
     def _start(self, label: str, nlp: NlpBase, sample: Sample, budget: int, cold: bool = False) -> Start:
-        """A start of `nlp` from the warm-start rules (core/warm_start.py) at this sample."""
+        """A start of `nlp` from the warm-start rules (core/sample/warm_start.py) at this sample."""
         regular = nlp.regular if isinstance(nlp, TieredNlp) else nlp
         w0, lam_x0, lam_g0 = initial_guess(regular, sample.x, sample.y_t, self.memory.plan, self.memory.pending,
                                            self.settings, self.model, keep_duals=regular is self.active_nlp)
@@ -417,7 +417,7 @@ class NmpcController:
         return result
 
     def _fall_back(self, sample: Sample, last: Candidate | None) -> StepResult:
-        """No usable plan: the candidate input predicting the least violation (core/fallback.py); the plan
+        """No usable plan: the candidate input predicting the least violation (core/sample/fallback.py); the plan
         ages by one. A budget-cut iterate of the regular NLP is continued next sample; a fast path whose
         warm solve failed outright re-seeds through the cold-start starts."""
         mem, x, par = self.memory, sample.x, sample.par

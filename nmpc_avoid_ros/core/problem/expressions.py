@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import casadi as ca
 
-from .errors import ExpressionError
+from ..errors import ExpressionError
 
 Expr = ca.SX | ca.MX
 

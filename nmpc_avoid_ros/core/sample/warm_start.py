@@ -1,6 +1,6 @@
 """The initial guess of a sample's regular solve: the budget-cut iterate, the shifted plan, or a straight line.
 
-Kept apart from the controller (core/controller.py) because it is pure bookkeeping on the NLP's
+Kept apart from the controller (core/sample/controller.py) because it is pure bookkeeping on the NLP's
 layout: no solver is called here.
 """
 
@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .models import Model
-from .nlp import NlpBase
-from .settings import ControllerSettings
+from ..config.settings import ControllerSettings
+from ..nlp.tracking import NlpBase
+from ..problem.models import Model
 from .step_result import Plan
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .search import Candidate
+from ..nlp.search import Candidate
 from .step_result import Plan
 
 
@@ -25,7 +25,7 @@ class SampleMemory:
     escape_wait: samples to wait before the next escape attempt (one found nothing better).
     escape_next: with escape_guesses_per_sample, the index of the next escape guess to solve.
     overrides: consecutive samples whose avoidable plan penetration was overridden.
-    passage: in the passage mode (the plan is the long NLP's, core/passage.py).
+    passage: in the passage mode (the plan is the long NLP's, core/sample/passage.py).
     passage_due: the short escape found nothing: try the long NLP on the next stalled sample.
     passage_next: with guesses per sample, the index of the next passage guess to solve.
     """

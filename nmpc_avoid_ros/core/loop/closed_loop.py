@@ -20,15 +20,15 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from ..config.settings import ControllerSettings
+from ..errors import ConfigError
+from ..nlp.search import SearchReport
+from ..problem.models import Model
+from ..problem.regions import Region
+from ..sample.controller import NmpcController
+from ..sample.step_result import StepResult
 from .certificate import StabilityCertificate
-from .controller import NmpcController
-from .errors import ConfigError
 from .metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
-from .models import Model
-from .regions import Region
-from .search import SearchReport
-from .settings import ControllerSettings
-from .step_result import StepResult
 
 #: the metrics' old home: kept importable from here for existing callers
 __all__ = ["PLANTS", "SETTLING_TOLERANCE", "ClosedLoop", "ClosedLoopRun", "ContinuousPlant", "DiscretePlant",
@@ -232,7 +232,7 @@ class ClosedLoopRun:
     info: dict = field(default_factory=dict)
     regions: list[tuple[Region, ...]] = field(default_factory=list)  # [K] the set in force at each sample
     stopped: str | None = None  # why the loop ended early (see Trajectory), None if it ran every sample
-    searches: list[SearchReport] = field(default_factory=list)  # [K] StepResult.search (core/search.py)
+    searches: list[SearchReport] = field(default_factory=list)  # [K] StepResult.search (core/nlp/search.py)
     # [K] StepResult.predicted_violation: of the applied fallback or bounded-violation input, else NaN
     predicted_violations: list[float] = field(default_factory=list)
     certificate: list[dict] = field(default_factory=list)  # [K] CertificateSample.as_dict() per sample
@@ -282,7 +282,7 @@ def run_closed_loop(
     `target` and `regions` may be functions of the step index (a schedule); a regions function
     returning None keeps the current set. `stop_on`: see ClosedLoop.run. Sample k happens at time
     k Ts (s): moving regions are stamped on that clock.
-    Every sample is scored by the stability certificate (core/certificate.py) right after its
+    Every sample is scored by the stability certificate (core/loop/certificate.py) right after its
     step: `ClosedLoopRun.certificate`.
     """
     x = np.asarray(x0, float).ravel()

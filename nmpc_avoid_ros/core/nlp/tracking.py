@@ -26,17 +26,17 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ..config.settings import SOLVERS, ControllerSettings
+from ..errors import ConfigError
+from ..problem.expressions import parse_keep_in
+from ..problem.models import Model, make_model
+from ..problem.regions import SlotLayout
 from .buffered import Buffered
-from .errors import ConfigError
-from .expressions import parse_keep_in
-from .models import Model, make_model
-from .regions import SlotLayout
-from .settings import SOLVERS, ControllerSettings
 from .worker import ABANDONED, SolveWorker
 
 #: the share of a sample's time bound (NmpcController.sample_budget) that the search's solver calls may
 #: use: IPOPT's own wall-time limit, and the deadline at which a call in the worker is abandoned; the
-#: fallback's recovery solve is limited to the rest (core/fallback.py)
+#: fallback's recovery solve is limited to the rest (core/sample/fallback.py)
 SEARCH_SHARE = 0.8
 
 #: return statuses after which the solution is used as is (IPOPT, sqpmethod; FATROP reports 0)
@@ -207,7 +207,7 @@ class NlpBase:
 
     #: the same solver with a cold-start iteration budget (where the run-time budget is smaller)
     cold_solver: ca.Function | None = None
-    #: where `solve` runs: None here, else a SolveWorker's child that can be abandoned (core/worker.py)
+    #: where `solve` runs: None here, else a SolveWorker's child that can be abandoned (core/nlp/worker.py)
     worker: SolveWorker | None = None
 
     def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False
@@ -219,7 +219,7 @@ class NlpBase:
 
         The call goes through `Function.buffer()` with arrays bound once, so no argument is
         converted or allocated per call (a dict call costs ~0.15 ms more, measured). With a `worker`
-        (core/worker.py) it runs in the worker's child and is abandoned at the worker's deadline.
+        (core/nlp/worker.py) it runs in the worker's child and is abandoned at the worker's deadline.
         """
         if self.worker is not None:
             return self.worker.solve(self, w0, par, lam_x0, lam_g0, cold, self.worker.deadline)
@@ -413,7 +413,7 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
 
     `equality` flags the constraints with lbg == ubg (FATROP needs to know them); `stages` gives
     the stage dimensions nx, nu, ng [N + 1] of a stage-wise problem (HPIPM needs them). With
-    settings.codegen the oracles are generated, compiled and cached (see core/codegen.py).
+    settings.codegen the oracles are generated, compiled and cached (see core/nlp/codegen.py).
     Returns the solver and {"codegen": bool, "library": path or None, "cache_hit": bool or None}.
     """
     path = settings.solver
