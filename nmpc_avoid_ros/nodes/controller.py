@@ -10,6 +10,9 @@ publisher and subscription. With `autostart` (default) the node walks itself to 
 `ros2 run` alone controls; with `autostart: false` a lifecycle manager (or `ros2 lifecycle set`)
 drives it through the standard lifecycle_msgs services.
 
+Always answers (controller_threads.py): SIGINT/SIGTERM and lifecycle transitions are honoured
+mid-solve; input floods do not hold the samples up.
+
 
 Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the
 latest state. A sample that finds no new state since the last solve (lost or late messages)
@@ -46,7 +49,7 @@ import time
 import traceback
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
@@ -56,7 +59,7 @@ from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from ..core.config.settings import NODE_SETTINGS, SETTINGS, NodeSettings
-from ..core.errors import ConfigError, InputError, NmpcError
+from ..core.errors import ConfigError, InputError, NmpcError, RegionError
 from ..core.loop.certificate import CertificateSample, StabilityCertificate
 from ..core.sample.controller import NmpcController
 from ..core.sample.step_result import StepResult
@@ -73,8 +76,9 @@ from ..ros.parameters import (
 )
 from ..ros.qos import LatchedSubscription
 from .controller_io import INTERFACES
-from .controller_views import ControllerViews
-from .runner import run_node
+from .controller_threads import AlwaysAnswers, locked, move_to_group, transition
+from .controller_views import ControllerViews, diagnostic_array
+from .runner import PoolExecutor, run_node
 
 #: the node's own parameters (declared in core/config/settings.py NodeSettings)
 NODE_SPECS = node_settings_specs()
@@ -82,7 +86,7 @@ NODE_SPECS = node_settings_specs()
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 
-class ControllerNode(LifecycleNode):
+class ControllerNode(AlwaysAnswers, LifecycleNode):
     """Thin managed node: converts messages, calls the core controller, publishes.
 
     The solver is built once, in `on_configure`; sample callbacks only convert, solve and publish.
@@ -90,6 +94,7 @@ class ControllerNode(LifecycleNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("controller", **kwargs)
+        self.setup_threads()
         self.values = declare(self, settings_specs() + NODE_SPECS)
         self.options = node_settings_from_values(self.values)
         self.add_on_set_parameters_callback(self.on_set_parameters)
@@ -114,6 +119,7 @@ class ControllerNode(LifecycleNode):
                 values[name] = None
         return values
 
+    @transition
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Read the parameters, build (or load) the solver, create publishers and latched inputs."""
         try:
@@ -170,6 +176,9 @@ class ControllerNode(LifecycleNode):
                                LatchedSubscription(self, MarkerArray, "obstacles", self.on_obstacles)]
         if self.io.goal_type is not None:
             self.latched_inputs.append(LatchedSubscription(self, self.io.goal_type, "goal_pose", self.on_goal))
+        # their own group: a large MarkerArray is deserialised beside a running sample (controller_threads)
+        for latched in self.latched_inputs:
+            move_to_group(latched.subscriptions, self.inputs)
         self.get_logger().info(
             f"controller ready: model={s.model} N={s.horizon} Ts={s.sample_time}s {s.discretization} "
             f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
@@ -190,6 +199,7 @@ class ControllerNode(LifecycleNode):
         self.started = self.now()
         self.certificate.reset()  # the next sample's predecessor is not the last one solved
 
+    @transition
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start the state subscription and the samples (timer, or each state in lockstep)."""
         self.reset_loop()
@@ -201,6 +211,7 @@ class ControllerNode(LifecycleNode):
         self.get_logger().info("controller active")
         return SUCCESS
 
+    @transition
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Stop the samples now and publish one `deactivate_command`."""
         self.stop_samples()
@@ -208,7 +219,8 @@ class ControllerNode(LifecycleNode):
         return SUCCESS
 
     def stop_samples(self) -> None:
-        # the executor runs one callback at a time: once this returns, no sample is running or due
+        # called holding the lock (a transition): no sample is running; one already taken by the
+        # executor finds `active` False and does nothing
         self.active = False
         if self.timer is not None:
             self.destroy_timer(self.timer)
@@ -220,11 +232,13 @@ class ControllerNode(LifecycleNode):
         self.send_command(u)
         self.get_logger().info(f"samples stopped: sent {self.options.deactivate_command} {u.tolist()}")
 
+    @transition
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Release the solver, the publishers and the latched inputs (back to unconfigured)."""
         self.release()
         return SUCCESS
 
+    @transition
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
         if self.active:
             self.stop_samples()
@@ -267,9 +281,12 @@ class ControllerNode(LifecycleNode):
     def reject(self, what: str, reason: str) -> None:
         self.counts["rejected_inputs"] += 1
         self.last_rejected = f"{what}: {reason}"
-        self.get_logger().warning(f"rejected {what}: {reason}", throttle_duration_sec=self.options.log_throttle)
+        self.log_throttled("rejected", "warning", f"rejected {what}: {reason}")
 
+    @locked
     def on_state(self, msg: Float64MultiArray | Odometry) -> None:
+        if not self.active:  # taken by the executor just before a deactivate
+            return
         try:
             self.state = self.io.state_of(msg, self.state)
         except InputError as exc:
@@ -285,12 +302,14 @@ class ControllerNode(LifecycleNode):
         if self.lockstep:
             self.on_sample()
 
+    @locked
     def on_target(self, msg: Float64MultiArray) -> None:
         try:
             self.set_target(array_to_vector(msg, self.p, "target"))
         except InputError as exc:
             self.reject("target", str(exc))
 
+    @locked
     def on_goal(self, msg: PoseStamped) -> None:
         """A goal pose (RViz "2D Goal Pose"): its position is y_t, in the odometry frame only."""
         try:
@@ -305,20 +324,18 @@ class ControllerNode(LifecycleNode):
             self.on_sample()
 
     def on_obstacles(self, msg: MarkerArray) -> None:
-        revision = self.store.revision
-        report = self.store.apply(msg, self.now())
-        for ns, marker_id, reason in report.rejected:
-            self.reject(f"marker {ns}/{marker_id}", reason)
-            self.last_obstacle_issue = f"refused {ns}/{marker_id}: {reason}"
-        for ns, marker_id, reason in report.resets:
-            self.counts["obstacle_resets"] += 1
-            self.last_obstacle_issue = f"reset {ns}/{marker_id}: {reason}"
-            self.get_logger().warning(f"marker {ns}/{marker_id}: {reason}",
-                                      throttle_duration_sec=self.options.log_throttle)
-        if self.store.revision != revision:
-            self.get_logger().info(f"obstacles received: {len(self.store)} region(s) stored",
-                                   throttle_duration_sec=self.options.log_throttle)
+        with self.applied_beside_samples(msg) as report:  # holding the lock once applied
+            for ns, marker_id, reason in report.rejected:
+                self.reject(f"marker {ns}/{marker_id}", reason)
+                self.last_obstacle_issue = f"refused {ns}/{marker_id}: {reason}"
+            for ns, marker_id, reason in report.resets:
+                self.counts["obstacle_resets"] += 1
+                self.last_obstacle_issue = f"reset {ns}/{marker_id}: {reason}"
+                self.log_throttled("obstacle_reset", "warning", f"marker {ns}/{marker_id}: {reason}")
+            if report.changed:
+                self.log_throttled("obstacles", "info", f"obstacles received: {len(self.store)} region(s) stored")
 
+    @locked
     def on_set_parameters(self, params: list) -> SetParametersResult:
         """Validate the whole batch through the settings' declarations; apply it only if all is valid.
 
@@ -355,7 +372,10 @@ class ControllerNode(LifecycleNode):
         return safe
 
     # -- the sample ----------------------------------------------------------------------------
+    @locked
     def on_sample(self) -> None:
+        if not self.active:  # taken by the executor just before a deactivate
+            return
         now = self.now()
         self.counts["samples"] += 1
         if self.target is None or self.state is None:
@@ -418,7 +438,11 @@ class ControllerNode(LifecycleNode):
             level = DiagnosticStatus.ERROR
             message = f"{result.status}: {result.fallback_reason}"
             self.get_logger().error(message, throttle_duration_sec=self.options.log_throttle)
-        certificate = self.certificate.observe(result, self.target, self.state_time)
+        try:
+            certificate = self.certificate.observe(result, self.target, self.state_time)
+        except RegionError as exc:
+            certificate = self.certificate.skip(f"regions not comparable: {exc}")
+            self.region_issue("certificate not checked", exc)
         self.publish_certificate(certificate)
         if certificate.violated:
             note = f"certificate violated by {-certificate.margin:.3g} ({certificate.consecutive} in a row)"
@@ -466,33 +490,11 @@ class ControllerNode(LifecycleNode):
                   "last_stale_s": f"{self.last_stale:.3f}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
                   "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected}
-        if result is not None:
-            values.update({
-                "status": result.status, "solver_status": result.solver_status,
-                "iterations": str(result.iterations), "solve_time_ms": f"{result.solve_time * 1e3:.3f}",
-                "step_latency_ms": f"{latency * 1e3:.3f}", "budget_exhausted": str(result.budget_exhausted),
-                "offset_cost": f"{result.offset_cost:.6g}", "avoidance_cost": f"{result.avoidance_cost:.6g}",
-                "tracking_cost": f"{result.tracking_cost:.6g}", "y_a": str(result.y_a.tolist()),
-                "state": str(result.states[0].tolist()), "state_time": repr(self.state_time),
-                "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
-                "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
-                "horizon": str(result.horizon),
-            })
-        cert = self.last_certificate
-        if cert is not None:
-            values.update({"value_function": repr(cert.value_function), "decrease": repr(cert.decrease),
-                           "decrease_bound": repr(cert.decrease_bound), "certificate_margin": repr(cert.margin),
-                           "certificate_violations": str(cert.violations),
-                           "certificate": (("violated" if cert.violated else "checked") if cert.checked
-                                           else f"not checked: {cert.reason}") + f"; V_N of the {cert.cost_source}"})
-        status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: nmpc",
-                                  message=message, hardware_id=self.get_fully_qualified_name())
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        msg = DiagnosticArray()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [status]
+        msg = diagnostic_array(self.get_fully_qualified_name(), self.get_clock().now().to_msg(), level, message,
+                               values, result, latency, self.state_time, self.last_certificate)
         self.pub_diagnostics.publish(msg)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(ControllerNode, argv, "controller", __doc__)
+    return run_node(ControllerNode, argv, "controller", __doc__, on_signal=ControllerNode.interrupt,
+                    executor_factory=lambda: PoolExecutor(3))

@@ -1,16 +1,19 @@
 """The controller's outputs for people and tools (config/nmpc_avoid_ros.rviz, config/foxglove_layout.json):
 `~/prediction` (Path), `~/regions` (MarkerArray), `~/steady_state` and `~/target_marker` (Marker),
-`~/stats` (Float64MultiArray) and `~/certificate` (Float64MultiArray)."""
+`~/stats` (Float64MultiArray) and `~/certificate` (Float64MultiArray); the /diagnostics message."""
 
 from __future__ import annotations
 
 import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Path
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.config.settings import ControllerSettings
+from ..core.errors import RegionError
 from ..core.loop.certificate import LAYOUT, CertificateSample
 from ..core.sample.step_result import StepResult
 from ..ros.parameters import STREAM_QOS
@@ -38,12 +41,15 @@ class ControllerViews:
         stamp = self.node.get_clock().now().to_msg()
         plane, frames = settings.plane, self.io.frames
         self.prediction.publish(prediction_path(result.states, plane, stamp, frames.state, self.io.heading_index))
-        now = [region.at(state_time) for region in regions]
-        predicted = []
-        if settings.predict_obstacles:
-            predicted = [[region.at(state_time + k * settings.sample_time) for region in regions if region.moving]
-                         for k in range(1, result.states.shape[0])]  # the plan's stages (passage mode: more)
-        self.regions.publish(regions_markers(now, stamp, frames, predicted))
+        try:
+            now = [region.at(state_time) for region in regions]
+            predicted = []
+            if settings.predict_obstacles:
+                predicted = [[region.at(state_time + k * settings.sample_time) for region in regions if region.moving]
+                             for k in range(1, result.states.shape[0])]  # the plan's stages (passage mode: more)
+            self.regions.publish(regions_markers(now, stamp, frames, predicted))
+        except RegionError as exc:  # a region that cannot be moved in time (node.region_issue): the rest goes on
+            self.node.region_issue("~/regions not published", exc)
         if np.all(np.isfinite(result.x_a)):
             self.steady_state.publish(steady_state_marker(result.x_a, plane, stamp, frames.state))
         if target is not None and target.size >= 2:
@@ -59,3 +65,34 @@ class ControllerViews:
     def destroy(self) -> None:
         for publisher in (self.prediction, self.regions, self.steady_state, self.target, self.stats, self.certificate):
             self.node.destroy_publisher(publisher)
+
+
+def diagnostic_array(name: str, stamp: Time, level: bytes, message: str, values: dict[str, str],
+                     result: StepResult | None, latency: float, state_time: float | None,
+                     cert: CertificateSample | None) -> DiagnosticArray:
+    """The controller's /diagnostics message: the node's `values`, then the sample's and the certificate's."""
+    values = dict(values)
+    if result is not None:
+        values.update({
+            "status": result.status, "solver_status": result.solver_status,
+            "iterations": str(result.iterations), "solve_time_ms": f"{result.solve_time * 1e3:.3f}",
+            "step_latency_ms": f"{latency * 1e3:.3f}", "budget_exhausted": str(result.budget_exhausted),
+            "offset_cost": f"{result.offset_cost:.6g}", "avoidance_cost": f"{result.avoidance_cost:.6g}",
+            "tracking_cost": f"{result.tracking_cost:.6g}", "y_a": str(result.y_a.tolist()),
+            "state": str(result.states[0].tolist()), "state_time": repr(state_time),
+            "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
+            "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
+            "horizon": str(result.horizon),
+        })
+    if cert is not None:
+        values.update({"value_function": repr(cert.value_function), "decrease": repr(cert.decrease),
+                       "decrease_bound": repr(cert.decrease_bound), "certificate_margin": repr(cert.margin),
+                       "certificate_violations": str(cert.violations),
+                       "certificate": (("violated" if cert.violated else "checked") if cert.checked
+                                       else f"not checked: {cert.reason}") + f"; V_N of the {cert.cost_source}"})
+    status = DiagnosticStatus(level=level, name=f"{name}: nmpc", message=message, hardware_id=name)
+    status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+    msg = DiagnosticArray()
+    msg.header.stamp = stamp
+    msg.status = [status]
+    return msg

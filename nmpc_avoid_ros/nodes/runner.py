@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import gc
 import signal
 import sys
@@ -11,19 +12,66 @@ from collections.abc import Callable
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import (
+    ConditionReachedException,
+    Executor,
+    ExternalShutdownException,
+    ShutdownException,
+    SingleThreadedExecutor,
+    TimeoutException,
+)
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from ..core.errors import NmpcError
 
 
+class PoolExecutor(Executor):
+    """Callbacks on `threads` worker threads; the callback groups decide which may run together.
+
+    rclpy's MultiThreadedExecutor without its gap: its shutdown (rclpy 7.1) returns while callbacks
+    still run, so a node could be destroyed under one. Here `shutdown` waits for them. The calling
+    thread only waits for work and hands it out, so it stays free to run signal handlers.
+    """
+
+    def __init__(self, threads: int = 2, *, context=None) -> None:
+        super().__init__(context=context)
+        self._pool = concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="callbacks")
+        #: (rclpy Task, the pool's future of its run) handed out and not yet checked
+        self._running: list[tuple[object, concurrent.futures.Future]] = []
+
+    def spin_once(self, timeout_sec: float | None = None) -> None:
+        try:
+            handler, _, _ = self.wait_for_ready_callbacks(timeout_sec=timeout_sec)
+        except (TimeoutException, ShutdownException, ConditionReachedException):
+            pass
+        else:
+            self._running.append((handler, self._pool.submit(handler)))
+        for entry in [e for e in self._running if e[1].done()]:
+            self._running.remove(entry)
+            entry[0].result()  # a callback's exception is raised here, in the spinning thread
+
+    def shutdown(self, timeout_sec: float | None = None) -> bool:
+        """Wait up to `timeout_sec` (None: for ever) for the callbacks handed out, then stop. Call it
+        from the spinning thread once it stopped spinning (then nothing new is handed out). The
+        waiting comes first: rclpy's shutdown destroys the guard condition a running handler
+        triggers when it ends."""
+        _, not_done = concurrent.futures.wait([f for _, f in self._running], timeout_sec)
+        super().shutdown(timeout_sec=0)
+        self._pool.shutdown(wait=False)
+        return not not_done
+
+
 def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc: str | None,
-             on_stop: Callable[[Node], None] | None = None) -> int:
+             on_stop: Callable[[Node], None] | None = None, on_signal: Callable[[Node], None] | None = None,
+             executor_factory: Callable[[], Executor] = SingleThreadedExecutor) -> int:
     """Init rclpy with argv (which may hold `--ros-args ...`), build the node, spin until a signal.
 
     SIGINT and SIGTERM end the spin between callbacks (never inside one, so no callback publishes
     into a context that is shutting down), then `on_stop(node)` runs and the node is destroyed.
+    `on_signal(node)` runs in the signal handler (it must not block or take locks): a node whose
+    callback may wait long (a solve) uses it to cut the wait short. `executor_factory`: the
+    executor (a PoolExecutor lets a node serve some callbacks while another runs).
     Returns 0 after a signal, 2 when the configuration is invalid (the reason is printed).
     """
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -32,9 +80,16 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
         print(f"usage: {name} [--ros-args ...]\n\n{(doc or '').strip()}")
         return 0
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    rclpy.init(args=[name, *argv], signal_handler_options=SignalHandlerOptions.NO)
     node = None
+
+    def on_stop_signal(*_) -> None:
+        stop.set()
+        if on_signal is not None and node is not None:
+            on_signal(node)
+
+    previous = {sig: signal.signal(sig, on_stop_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=[name, *argv], signal_handler_options=SignalHandlerOptions.NO)
+    executor = None
     try:
         try:
             node = factory()
@@ -46,7 +101,7 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
         # generation: the collector never scans it again, so its pauses inside callbacks stay short
         gc.collect()
         gc.freeze()
-        executor = SingleThreadedExecutor()
+        executor = executor_factory()
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
             try:
@@ -55,11 +110,14 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
                 raise
             except Exception:  # a bug in one callback must not stop the node: log it loudly, go on
                 node.get_logger().error(f"callback failed:\n{traceback.format_exc()}", throttle_duration_sec=1.0)
+        executor.shutdown()  # waits for a callback still running (a PoolExecutor's)
         if on_stop is not None:
             on_stop(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if executor is not None:
+            executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -16,6 +16,12 @@ round trip costs ~20 microseconds (BENCHMARKS.md); a fork ~10 ms, only after an 
 The child ignores SIGINT (the parent decides when it ends), dies with the parent (PR_SET_PDEATHSIG
 where Linux offers it, and on end of file on its request pipe) and never runs the parent's
 exit handlers (os._exit).
+
+Interrupt: `interrupt()` (from a signal handler or another thread; it takes no lock) abandons the
+call in progress at once and every later call until `resume()`. A node calls it on SIGINT or a
+lifecycle transition so that neither waits for the deadline: Python retries a select() that a
+signal interrupted (PEP 475) when the handler returns normally, so the wait also watches a wakeup
+pipe that `interrupt()` writes to. Offline use never calls it.
 """
 
 from __future__ import annotations
@@ -72,11 +78,46 @@ class SolveWorker:
         self._outputs = np.frombuffer(self._memory, np.float64, self._out_size, _HEADER.size + 8 * self._in_size)
         self._child = _Child()
         self._lock = threading.Lock()  # one call at a time (a multi-threaded executor may call step)
+        self._interrupted = False
+        self._wakeup = list(os.pipe())  # [read, write]: a byte in it wakes the wait (interrupt); -1 once closed
+        for fd in self._wakeup:
+            os.set_blocking(fd, False)
         #: children forked so far (the first, then one after each abandoned call)
         self.forks = 0
         #: the deadline (time.perf_counter s) of the calls of the current sample (NmpcController.step sets it)
         self.deadline = math.inf
-        weakref.finalize(self, self._child.stop)  # the child never outlives its worker
+        weakref.finalize(self, _release, self._child, self._wakeup)  # the child never outlives its worker
+
+    @property
+    def interrupted(self) -> bool:
+        """`interrupt()` was called and `resume()` not since: every call answers ABANDONED at once."""
+        return self._interrupted
+
+    def interrupt(self) -> None:
+        """Abandon the call in progress now (its child is killed) and every later call until `resume()`.
+
+        Safe from a signal handler and from another thread: sets a flag and writes one byte to the
+        wakeup pipe (never blocks, takes no lock)."""
+        self._interrupted = True
+        fd = self._wakeup[1]
+        if fd >= 0:
+            try:
+                os.write(fd, b"!")
+            except OSError:  # full: a byte is already waiting
+                pass
+
+    def resume(self) -> None:
+        """Serve calls again after `interrupt()` (call it when no call is in progress)."""
+        self._interrupted = False
+        self._drain_wakeup()
+
+    def _drain_wakeup(self) -> None:
+        fd = self._wakeup[0]
+        try:
+            while fd >= 0 and os.read(fd, 64):
+                pass
+        except OSError:  # empty (BlockingIOError)
+            pass
 
     # -- the parent's side -----------------------------------------------------------------
     def solve(self, nlp: NlpBase, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray,
@@ -86,7 +127,7 @@ class SolveWorker:
         n_w, n_g = nlp.layout.n_w, nlp.lbg.size
         with self._lock:
             begin = time.perf_counter()
-            if deadline - begin > 0:
+            if deadline - begin > 0 and not self._interrupted:
                 self._ensure_child()
                 n_p = par.size
                 np.copyto(self._inputs[:n_w], w0)
@@ -106,14 +147,18 @@ class SolveWorker:
             time.perf_counter() - begin
 
     def _wait(self, deadline: float) -> bool:
-        """Whether the child answered before `deadline` (False also when it died)."""
-        while True:
+        """Whether the child answered before `deadline` (False also when it died or on `interrupt()`)."""
+        watched = [self._child.answer, self._wakeup[0]]
+        while not self._interrupted:
             left = deadline - time.perf_counter()
             if left <= 0:
                 return False
-            ready, _, _ = select.select([self._child.answer], [], [], None if math.isinf(left) else left)
-            if ready:
+            ready, _, _ = select.select(watched, [], [], None if math.isinf(left) else left)
+            if self._child.answer in ready:
                 return os.read(self._child.answer, 1) == b"."
+            if self._wakeup[0] in ready and not self._interrupted:
+                self._drain_wakeup()  # the byte of an interrupt() that a resume() overtook: keep waiting
+        return False
 
     def _ensure_child(self) -> None:
         if self._child.pid:
@@ -127,6 +172,8 @@ class SolveWorker:
         if pid == 0:  # the child
             os.close(request_write)
             os.close(answer_read)
+            for fd in self._wakeup:
+                os.close(fd)
             self._serve(request_read, answer_write)
         os.close(request_read)
         os.close(answer_write)
@@ -191,6 +238,17 @@ class _Child:
         except (ProcessLookupError, ChildProcessError):
             pass
         self.pid, self.request, self.answer = 0, -1, -1
+
+
+def _release(child: _Child, wakeup: list[int]) -> None:
+    """The worker's finaliser: stop its child, close its wakeup pipe (marked closed: -1)."""
+    child.stop()
+    for i, fd in enumerate(wakeup):
+        wakeup[i] = -1
+        try:
+            os.close(fd)
+        except OSError:
+            pass
 
 
 def _read_exactly(fd: int, count: int) -> bytes | None:
