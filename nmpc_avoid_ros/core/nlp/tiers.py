@@ -50,7 +50,7 @@ class TieredNlp:
             (k, make_nlp(settings.replace(max_ellipses=k, max_polygons=0, ellipse_tiers=()), model))
             for k in sorted(set(settings.ellipse_tiers))]
         # the parameter vector before the slot block: x0, y_t, kappa, mu, weights, keep-in flags
-        self._prefix = _parameter_count(regular) - regular.slot_layout.size
+        self._prefix = regular.parameter_count - regular.slot_layout.size
         self.tier: NlpBase | None = None  # the tier of the current regions, or None
         self._regions: tuple[Region, ...] = ()
         self._static_slots: np.ndarray | None = None
@@ -104,8 +104,3 @@ class TieredNlp:
         else:
             w = np.full(regular.layout.n_w, np.nan)
         return w, np.zeros(regular.layout.n_w), np.zeros(regular.lbg.size), stats, seconds
-
-
-def _parameter_count(nlp: NlpBase) -> int:
-    """Length of the NLP's parameter vector (its solver's 'p' input)."""
-    return int(nlp.solver.size1_in(nlp.solver.index_in("p")))

@@ -199,6 +199,11 @@ class NlpBase:
         """Pack the parameter vector: x0 [n], y_t [p], kappa, mu, diag Q [n], diag R [m], keep-in flags, slots."""
         return np.concatenate([x0, y_t, [kappa, mu], state_weights, input_weights, keep_in_active, slots])
 
+    @property
+    def parameter_count(self) -> int:
+        """Length of the parameter vector (the solver's 'p' input)."""
+        return int(self.solver.size1_in(self.solver.index_in("p")))
+
     def violation(self, w: np.ndarray, par: np.ndarray) -> float:
         """Largest violation of the constraints and bounds at w (0 if feasible)."""
         g = self.constraint_values(w, par)[0]

@@ -69,7 +69,7 @@ class SolveWorker:
     def __init__(self, nlps: Sequence[NlpBase]) -> None:
         self._nlps = list(nlps)
         self._index = {id(nlp): i for i, nlp in enumerate(self._nlps)}
-        sizes = [(nlp.layout.n_w, _parameter_count(nlp), nlp.lbg.size) for nlp in self._nlps]
+        sizes = [(nlp.layout.n_w, nlp.parameter_count, nlp.lbg.size) for nlp in self._nlps]
         self._in_size = max(2 * n_w + n_p + n_g for n_w, n_p, n_g in sizes)
         self._out_size = max(2 * n_w + n_g for n_w, _, n_g in sizes)
         floats = self._in_size + self._out_size
@@ -204,7 +204,7 @@ class SolveWorker:
             os._exit(0)
 
     def _solve_here(self, nlp: NlpBase, cold: bool) -> None:
-        n_w, n_g, n_p = nlp.layout.n_w, nlp.lbg.size, _parameter_count(nlp)
+        n_w, n_g, n_p = nlp.layout.n_w, nlp.lbg.size, nlp.parameter_count
         inputs = self._inputs
         w0, par = inputs[:n_w], inputs[n_w:n_w + n_p]
         lam_x0, lam_g0 = inputs[n_w + n_p:2 * n_w + n_p], inputs[2 * n_w + n_p:2 * n_w + n_p + n_g]
@@ -259,8 +259,3 @@ def _read_exactly(fd: int, count: int) -> bytes | None:
             return None
         data += chunk
     return data
-
-
-def _parameter_count(nlp: NlpBase) -> int:
-    """Length of the NLP's parameter vector (its solver's 'p' input)."""
-    return int(nlp.solver.size1_in(nlp.solver.index_in("p")))
