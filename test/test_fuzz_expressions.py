@@ -7,6 +7,10 @@ Proves, beyond the fixed cases of test_expressions.py, that
   comprehensions, subscripts, strings, huge exponents, undeclared names), wherever it is embedded
   in an otherwise valid expression, is refused with ExpressionError and a message, quickly;
 - the worst case we could construct (refused or accepted) parses in well under 0.5 s.
+
+Parse times are this process's CPU time (time.process_time): a parser that blows up burns CPU, while
+the wall clock of a shared machine also counts other jobs (0.38 s wall seen on a 5-term expression in
+CI). time_limit still turns a hang into a failure on the wall clock.
 """
 
 from __future__ import annotations
@@ -156,11 +160,11 @@ FORBIDDEN = [
 def test_forbidden_constructs_are_refused_wherever_they_are(bad: str, ok, template: str) -> None:
     text = template.format(bad=bad, ok=ok[0])
     for parser in (parse_expression, parse_keep_in):
-        start = time.perf_counter()
+        start = time.process_time()
         with time_limit(2.0), pytest.raises(ExpressionError) as info:
             parser(text, symbols())
         assert str(info.value).strip()
-        assert time.perf_counter() - start < 0.25, text
+        assert time.process_time() - start < 0.25, text
 
 
 @fuzz_settings(200)
@@ -178,14 +182,14 @@ def test_any_other_name_or_function_is_refused_and_named(name: str) -> None:
                                                   max_size=200)))
 def test_arbitrary_text_is_accepted_as_casadi_or_refused_quickly(text: str) -> None:
     for parser in (parse_expression, parse_keep_in):
-        start = time.perf_counter()
+        start = time.process_time()
         with time_limit(2.0):
             try:
                 result = parser(text, symbols())
             except ExpressionError as exc:
                 assert str(exc).strip()
                 continue
-        assert time.perf_counter() - start < 0.25
+        assert time.process_time() - start < 0.25
         g = result if parser is parse_expression else result.g
         assert isinstance(g, ca.SX) and g.is_scalar()
 
@@ -227,13 +231,13 @@ def test_worst_case_parse_time_is_bounded(record_property) -> None:
     timings: dict[str, float] = {}
     for name, text in _worst_cases().items():
         for parser in (parse_expression, parse_keep_in):
-            start = time.perf_counter()
+            start = time.process_time()
             with time_limit(5.0):
                 try:
                     parser(text, syms)
                 except ExpressionError as exc:
                     assert str(exc).strip()
-            timings[f"{name}/{parser.__name__}"] = time.perf_counter() - start
+            timings[f"{name}/{parser.__name__}"] = time.process_time() - start
     worst = max(timings, key=timings.get)
     record_property("worst_case_parse", f"{worst}: {timings[worst] * 1e3:.2f} ms")
     print(f"worst case parse: {worst} {timings[worst] * 1e3:.2f} ms")

@@ -33,6 +33,8 @@ CONFIG = Path(__file__).resolve().parents[1] / "config"
 CASES = [("van_der_pol.yaml", None), ("van_der_pol.yaml", "sqp"), ("van_der_pol.yaml", "ipopt"),
          ("van_der_pol_fast.yaml", None), ("mobile_robot.yaml", None), ("unicycle.yaml", None)]
 MAX_SOLVE_TIME = 0.1
+#: runs of one case before an overrun counts (see the test)
+ATTEMPTS = 3
 #: a hang is a failure: the whole run ends with every thread's traceback after this long
 HANG_SECONDS = 60.0
 
@@ -66,9 +68,9 @@ def controller(request) -> NmpcController:
     return NmpcController(settings)
 
 
-@given(data=st.data(), warm_steps=st.integers(0, 2), regions=st.lists(region, max_size=4))
-@fuzz_settings(30)
-def test_every_step_returns_within_its_budget(controller, data, warm_steps, regions):
+def timed_step(controller: NmpcController, regions, warm_steps: int, x: np.ndarray, y_t: np.ndarray):
+    """From a fresh memory with `regions` and `warm_steps` ordinary samples: the step at (x, y_t), its
+    wall time in s and its bound."""
     n, p = controller.model.n, controller.model.p
     controller.reset()
     try:
@@ -78,10 +80,6 @@ def test_every_step_returns_within_its_budget(controller, data, warm_steps, regi
     sane = np.zeros(n)
     for _ in range(warm_steps):
         controller.step(sane, sane[:p] + 1.0)
-    # half the states near Z (within the solve domain: the solvers run), half anywhere
-    hi = np.where(np.isfinite(controller.settings.state_max), controller.settings.state_max, 10.0)
-    near = st.lists(st.floats(-2.0, 2.0), min_size=n, max_size=n).map(lambda f: np.array(f) * hi)
-    x, y_t = data.draw(st.one_of(near, vectors(n))), data.draw(vectors(p))
     bound = controller.sample_budget() + TIME_BOUND_MARGIN
     faulthandler.dump_traceback_later(HANG_SECONDS, exit=True)
     try:
@@ -90,7 +88,28 @@ def test_every_step_returns_within_its_budget(controller, data, warm_steps, regi
         seconds = time.perf_counter() - begin
     finally:
         faulthandler.cancel_dump_traceback_later()
-    assert seconds <= bound, (seconds, bound, x.tolist(), y_t.tolist(), result.status, result.solver_status)
+    return result, seconds, bound
+
+
+@given(data=st.data(), warm_steps=st.integers(0, 2), regions=st.lists(region, max_size=4))
+@fuzz_settings(30)
+def test_every_step_returns_within_its_budget(controller, data, warm_steps, regions):
+    n = controller.model.n
+    # half the states near Z (within the solve domain: the solvers run), half anywhere
+    hi = np.where(np.isfinite(controller.settings.state_max), controller.settings.state_max, 10.0)
+    near = st.lists(st.floats(-2.0, 2.0), min_size=n, max_size=n).map(lambda f: np.array(f) * hi)
+    x, y_t = data.draw(st.one_of(near, vectors(n))), data.draw(vectors(controller.model.p))
+    # an overrun by design repeats on the same input; a shared machine's scheduling noise (a step
+    # descheduled for tens of ms) does not: a case fails when each of ATTEMPTS runs of it overruns
+    overruns = []
+    for _ in range(ATTEMPTS):
+        result, seconds, bound = timed_step(controller, regions, warm_steps, x, y_t)
+        if seconds <= bound:
+            break
+        overruns.append(seconds)
+    else:
+        pytest.fail(f"{overruns} s > {bound} s at x {x.tolist()}, y_t {y_t.tolist()}: {result.status}, "
+                    f"{result.solver_status}")
     assert np.all(np.isfinite(result.u))
     lo, hi = controller.settings.input_min, controller.settings.input_max
     assert np.all(result.u >= np.asarray(lo) - 1e-9) and np.all(result.u <= np.asarray(hi) + 1e-9)

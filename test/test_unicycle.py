@@ -29,6 +29,12 @@ from nmpc_avoid_ros.ros.robot import (
 CONFIG = ROOT / "config" / "unicycle.yaml"
 
 
+#: solver budget of the offline loops here: the shipped 0.15 s cuts a third of the IPOPT solves on a
+#: quiet machine already (the cut iterate is continued next sample), more on a loaded one, so the loop
+#: would depend on the machine; these tests are about where the robot goes, not how fast it decides
+OFFLINE_SOLVE_TIME = 2.0
+
+
 def robot_settings(**changes):
     return ControllerSettings.from_params(load_params_file(CONFIG).section("controller")).replace(**changes)
 
@@ -44,7 +50,7 @@ def test_any_heading_at_rest_is_an_equilibrium_and_motion_follows_the_heading():
 
 
 def test_the_robot_parks_with_a_free_heading_and_the_fast_paths_refuse_the_model():
-    controller = NmpcController(robot_settings(keep_in=[]))
+    controller = NmpcController(robot_settings(keep_in=[], max_solve_time=OFFLINE_SOLVE_TIME))
     run = run_closed_loop(controller, [0.0, 0.0, 0.0], [0.0, 2.0], 40, "euler")  # a goal to the left
     x = np.asarray(run.x)
     assert np.hypot(x[-1, 0], x[-1, 1] - 2.0) < 0.01
@@ -61,7 +67,7 @@ def test_the_robot_parks_with_a_free_heading_and_the_fast_paths_refuse_the_model
 
 @pytest.mark.slow
 def test_offline_loop_reaches_the_goal_around_two_ellipses():
-    controller = NmpcController(robot_settings())
+    controller = NmpcController(robot_settings(max_solve_time=OFFLINE_SOLVE_TIME))
     ellipses = [Ellipse((-1.2, -1.0), (0.7, 0.5), 0.5, "output"), Ellipse((1.2, 0.7), (0.5, 0.8), 0.0, "output")]
     controller.set_regions(ellipses)
     run = run_closed_loop(controller, [-4.0, -3.0, 0.0], [3.0, 2.0], 80, "euler")

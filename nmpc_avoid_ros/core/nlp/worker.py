@@ -10,8 +10,10 @@ How: the controller's NLPs are built first; the first solve forks a child that h
 them. A call copies the guess and parameters into shared memory, writes one byte on a pipe and
 waits on the answer pipe until the deadline. On time: the results are read back from shared
 memory. Late: the child is killed (SIGKILL) and the call answers ABANDONED with a non-finite
-iterate; the next call forks a fresh child from the parent, whose copies were never used. The
-round trip costs ~20 microseconds (BENCHMARKS.md); a fork ~10 ms, only after an abandoned call.
+iterate at once: the killed child is reaped by the next fork, not waited for now (its teardown
+took 2-4 ms here, more on a loaded machine, and it would come out of the rest of the sample). The
+next call forks a fresh child from the parent, whose copies were never used. The round trip costs
+~20 microseconds (BENCHMARKS.md); a fork 2-3 ms, only after an abandoned call.
 
 The child ignores SIGINT (the parent decides when it ends), dies with the parent (PR_SET_PDEATHSIG
 where Linux offers it, and on end of file on its request pipe) and never runs the parent's
@@ -141,7 +143,7 @@ class SolveWorker:
                     stats = {"return_status": raw[:length].decode(), "iter_count": int(iterations)}
                     return (out[:n_w].copy(), out[n_w:2 * n_w].copy(), out[2 * n_w:2 * n_w + n_g].copy(), stats,
                             seconds)
-                self._child.stop()
+                self._child.stop(reap=False)  # reaped by the next fork
         nan_w = np.full(n_w, np.nan)
         return nan_w, nan_w.copy(), np.full(n_g, np.nan), {"return_status": ABANDONED, "iter_count": 0}, \
             time.perf_counter() - begin
@@ -163,6 +165,7 @@ class SolveWorker:
     def _ensure_child(self) -> None:
         if self._child.pid:
             return
+        self._child.reap()
         request_read, request_write = os.pipe()
         answer_read, answer_write = os.pipe()
         with warnings.catch_warnings():
@@ -222,22 +225,34 @@ class _Child:
 
     def __init__(self) -> None:
         self.pid, self.request, self.answer = 0, -1, -1
+        self.killed: list[int] = []  # killed children not reaped yet
 
-    def stop(self) -> None:
-        """Kill and reap the child, close the pipes (idempotent)."""
-        if not self.pid:
-            return
-        for fd in (self.request, self.answer):
+    def stop(self, reap: bool = True) -> None:
+        """Kill the child and close the pipes (idempotent); reap it (and every child killed before)
+        now, or with `reap=False` at the next `reap()`."""
+        if self.pid:
+            for fd in (self.request, self.answer):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
             try:
-                os.close(fd)
-            except OSError:
+                os.kill(self.pid, signal.SIGKILL)
+                self.killed.append(self.pid)
+            except ProcessLookupError:
                 pass
-        try:
-            os.kill(self.pid, signal.SIGKILL)
-            os.waitpid(self.pid, 0)
-        except (ProcessLookupError, ChildProcessError):
-            pass
-        self.pid, self.request, self.answer = 0, -1, -1
+            self.pid, self.request, self.answer = 0, -1, -1
+        if reap:
+            self.reap()
+
+    def reap(self) -> None:
+        """Wait for the killed children (SIGKILL cannot be ignored: each is gone or about to be)."""
+        while self.killed:
+            try:
+                os.waitpid(self.killed[-1], 0)
+            except ChildProcessError:
+                pass
+            self.killed.pop()
 
 
 def _release(child: _Child, wakeup: list[int]) -> None:

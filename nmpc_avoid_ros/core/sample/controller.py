@@ -248,9 +248,9 @@ class NmpcController:
             self.set_regions(regions)
         y_t = self.project_target(y_t)
         self.tiered.set_time(time, self.settings.predict_obstacles)
-        deadline = begin + SEARCH_SHARE * self.sample_budget()
-        self.worker.deadline = deadline
-        return Sample(x, y_t, self.parameters(x, y_t, time), time, deadline, self.in_solve_domain(x))
+        budget = self.sample_budget()
+        self.worker.deadline = deadline = begin + SEARCH_SHARE * budget
+        return Sample(x, y_t, self.parameters(x, y_t, time), time, deadline, begin + budget, self.in_solve_domain(x))
 
     def _search(self, sample: Sample, report: SearchReport) -> tuple[Candidate | None, Candidate | None]:
         """The sample's search: the regular starts, then the escape or the passage guesses from the plan
@@ -401,7 +401,7 @@ class NmpcController:
         mem = self.memory
         if not (self.settings.mu > 0 and best.depth > VIOLATION_TOLERANCE):
             return result
-        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:self.fallback.horizon])
+        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:self.fallback.horizon], sample.end)
         if choice is None or (not choice.unavoidable and mem.overrides >= self.nlp.layout.horizon):
             mem.overrides = 0
             return result
@@ -436,7 +436,8 @@ class NmpcController:
             N = len(plan.inputs)
             shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])[:H]
             u_a = plan.u_a
-        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, sample.in_domain)
+        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, sample.in_domain,
+                                      sample.end)
         sample.seconds += choice.solve_time
         if plan is not None and choice.kind in ("shift", "steady"):
             result = self._result(plan, x, plan.age, StepStatus(f"fallback_{choice.kind}"), status, iterations,

@@ -41,6 +41,8 @@ CANDIDATES = ("shift", "steady", "safe", "recovery")
 PLAN_OVERRIDE = VIOLATION_TOLERANCE
 #: iteration budget of the recovery solve
 RECOVERY_ITERATIONS = 100
+#: a recovery solve is not started with less time than this left before its end, s
+RECOVERY_MIN_TIME = 1e-3
 #: weight of |u - u_ref|^2 in the recovery solve: picks the input nearest the reference among
 #: equally safe ones (small against any violation worth removing)
 RECOVERY_REGULARISATION = 1e-6
@@ -58,6 +60,35 @@ class FallbackChoice:
     reason: str
     solve_time: float = 0.0
     unavoidable: bool = False  # every candidate predicts a violation (see FallbackSelector.check_plan)
+
+
+class _StopAt(ca.Callback):
+    """IPOPT's iteration callback that ends the solve (User_Requested_Stop) once time.perf_counter()
+    passes `end`: the recovery's own max_wall_time counts from its start, this from the sample's."""
+
+    def __init__(self, n_x: int, n_g: int, n_p: int) -> None:
+        ca.Callback.__init__(self)
+        self._sizes = {"x": n_x, "f": 1, "g": n_g, "lam_x": n_x, "lam_g": n_g, "lam_p": n_p}
+        self.end = math.inf
+        self.construct("recovery_stop_at", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "stop"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self._sizes[ca.nlpsol_out(i)], 1)
+
+    def eval(self, arg: list) -> list:
+        return [1 if time.perf_counter() >= self.end else 0]
 
 
 class FallbackSelector:
@@ -91,7 +122,8 @@ class FallbackSelector:
         cost = ca.sumsqr(slack) + RECOVERY_REGULARISATION * ca.sumsqr(U - ca.repmat(u_ref, 1, H))
         problem = {"x": ca.vertcat(ca.vec(U), slack), "p": ca.vertcat(x0, par, u_ref), "f": cost,
                    "g": slack - excess}
-        options = {"print_time": False, "error_on_fail": False,
+        self._stop_at = _StopAt(problem["x"].numel(), excess.numel(), problem["p"].numel())
+        options = {"print_time": False, "error_on_fail": False, "iteration_callback": self._stop_at,
                    "ipopt": {"print_level": 0, "sb": "yes", "max_iter": RECOVERY_ITERATIONS,
                              "max_wall_time": (1 - SEARCH_SHARE) * settings.max_solve_time, "tol": 1e-8}}
         self._recovery = ca.nlpsol("fallback_recovery", "ipopt", problem, options)
@@ -112,11 +144,16 @@ class FallbackSelector:
         # a rollout that overflows (a state far outside Z) predicts the worst, not none: max(0, nan) is 0
         return np.asarray(states).T, max(0.0, worst) if math.isfinite(worst) else math.inf
 
-    def recover(self, x: np.ndarray, par: np.ndarray, start: np.ndarray) -> tuple[np.ndarray | None, float]:
+    def recover(self, x: np.ndarray, par: np.ndarray, start: np.ndarray, end: float = math.inf
+                ) -> tuple[np.ndarray | None, float]:
         """Inputs [H, m] minimising the predicted violation from the guess `start` [H, m] (None if the
-        solve failed), and its wall time in s."""
-        guess = np.concatenate([np.asarray(start, float).ravel(), np.zeros(self._n_slack)])  # = vec(U)
+        solve failed or less than RECOVERY_MIN_TIME was left), and its wall time in s. The solve ends
+        by `end` (time.perf_counter s, the sample's time bound) plus one iteration."""
         begin = time.perf_counter()
+        if end - begin < RECOVERY_MIN_TIME:
+            return None, 0.0
+        guess = np.concatenate([np.asarray(start, float).ravel(), np.zeros(self._n_slack)])  # = vec(U)
+        self._stop_at.end = end
         sol = self._recovery(x0=guess, p=np.concatenate([x, par, start[0]]), lbx=self._lbx, ubx=self._ubx,
                              lbg=0.0, ubg=np.inf)
         seconds = time.perf_counter() - begin
@@ -129,10 +166,11 @@ class FallbackSelector:
         return inputs, seconds
 
     def choose(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray | None, u_a: np.ndarray | None,
-               plan_left: bool, recover: bool = True) -> FallbackChoice:
+               plan_left: bool, recover: bool = True, end: float = math.inf) -> FallbackChoice:
         """The least-violating candidate for state x [n]. `plan_inputs` [H, m]: the shifted plan's
         inputs (padded with u_a); `plan_left`: the shifted plan still has inputs of its own; `recover`
-        False: no recovery solve (a state outside the solve domain is handed to no solver)."""
+        False: no recovery solve (a state outside the solve domain is handed to no solver); `end`: the
+        recovery solve's end (time.perf_counter s)."""
         H = self.horizon
         sequences: dict[str, np.ndarray] = {}
         if plan_inputs is not None and plan_left:
@@ -144,7 +182,7 @@ class FallbackSelector:
         seconds = 0.0
         if recover and min(v for _, v in predicted.values()) > VIOLATION_TOLERANCE:
             best_start = min(sequences, key=lambda k: predicted[k][1])
-            inputs, seconds = self.recover(x, par, sequences[best_start])
+            inputs, seconds = self.recover(x, par, sequences[best_start], end)
             if inputs is not None:
                 sequences["recovery"] = inputs
                 predicted["recovery"] = self.predict(x, inputs, par)
@@ -155,8 +193,9 @@ class FallbackSelector:
         states, violation = predicted[kind]
         return FallbackChoice(kind, sequences[kind], states, violation, reason, seconds)
 
-    def check_plan(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray) -> FallbackChoice | None:
-        """A better input than the solved plan's [H, m], or None to apply the plan.
+    def check_plan(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray, end: float = math.inf
+                   ) -> FallbackChoice | None:
+        """A better input than the solved plan's [H, m], or None to apply the plan (`end`: as in `choose`).
 
         Only for a plan predicting penetration beyond VIOLATION_TOLERANCE: the least-violating of
         the plan (kind 'plan'), the safe input and the recovery solve, when every one of them predicts
@@ -169,7 +208,7 @@ class FallbackSelector:
         plan_violation = self.predict(x, plan_inputs, par)[1]
         if plan_violation <= VIOLATION_TOLERANCE:
             return None
-        choice = self.choose(x, par, plan_inputs, None, True)
+        choice = self.choose(x, par, plan_inputs, None, True, end=end)
         if choice.kind == "shift":
             choice.kind = "plan"
             choice.reason = "plan" + choice.reason[len("shift"):].replace("(shift ", "(plan ")

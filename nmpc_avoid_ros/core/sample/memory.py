@@ -44,14 +44,16 @@ class SampleMemory:
 @dataclass
 class Sample:
     """One sample after `prepare`: state x [n], tracked target y_t [p] (projected), parameters, the
-    time of x (s, the regions' clock), the deadline of its solver calls (time.perf_counter s), whether
-    x is in the solve domain; then what the search adds: its solver seconds and the regular candidate."""
+    time of x (s, the regions' clock), the deadline of the search's solver calls and the end of the
+    sample's budget (time.perf_counter s: the fallback's recovery solve ends by it), whether x is in the
+    solve domain; then what the search adds: its solver seconds and the regular candidate."""
 
     x: np.ndarray
     y_t: np.ndarray
     par: np.ndarray
     time: float | None
     deadline: float
+    end: float
     in_domain: bool
     seconds: float = 0.0
     regular: Candidate | None = None
