@@ -66,6 +66,7 @@ from ..core.sample.step_result import StepResult
 from ..ros.conversions import array_to_vector
 from ..ros.markers import RegionStore
 from ..ros.parameters import (
+    LATEST_QOS,
     STREAM_QOS,
     declare,
     finite_vector,
@@ -204,7 +205,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         """Start the state subscription and the samples (timer, or each state in lockstep)."""
         self.reset_loop()
         self.state_subscription = self.create_subscription(self.io.state_type, self.io.state_topic, self.on_state,
-                                                           STREAM_QOS)
+                                                           LATEST_QOS)
         if not self.lockstep:
             self.timer = self.create_timer(self.controller.settings.sample_time, self.on_sample)
         self.active = True

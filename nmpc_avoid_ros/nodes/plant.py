@@ -32,7 +32,7 @@ from ..core.errors import ConfigError, InputError
 from ..core.loop.closed_loop import ContinuousPlant, DiscretePlant
 from ..core.problem.models import MODELS, make_model
 from ..ros.conversions import array_to_vector, vector_to_array
-from ..ros.parameters import STREAM_QOS, ParamSpec, declare, finite_vector
+from ..ros.parameters import LATEST_QOS, STREAM_QOS, ParamSpec, declare, finite_vector
 from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command
 from .runner import run_node
 
@@ -108,10 +108,10 @@ class PlantNode(Node):
             self.odom_frame, self.base_frame = values["odom_frame"], values["base_frame"]
             self.pub_state = self.create_publisher(Odometry, "odom", STREAM_QOS)
             twist_type = TwistStamped if values["cmd_vel_stamped"] else Twist
-            self.create_subscription(twist_type, "cmd_vel", self.on_command, STREAM_QOS)
+            self.create_subscription(twist_type, "cmd_vel", self.on_command, LATEST_QOS)
         else:
             self.pub_state = self.create_publisher(Float64MultiArray, "state", STREAM_QOS)
-            self.create_subscription(Float64MultiArray, "command", self.on_command, STREAM_QOS)
+            self.create_subscription(Float64MultiArray, "command", self.on_command, LATEST_QOS)
         if self.lockstep:
             self.pub_clock = self.create_publisher(Clock, "/clock", STREAM_QOS)
             # publish x0 once the controller's subscription is matched (then exactly once per command)
