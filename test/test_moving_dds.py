@@ -71,19 +71,22 @@ def test_walker_crossing_in_lockstep_meets_the_walker_and_keeps_clearance_in_the
     assert metrics["min_clearance_obstacles"] < 1.0, metrics
 
 
-#: real time: the command for the state measured at t acts from t + the answer's latency (median
-#: 20 ms, p99 100 ms here), while the plan rests on the walker's boundary; at the robot's ~1 m/s a
-#: 3.5 mm lag is g = 2 * 0.0035 / 0.7 = 0.01 for the 0.7 m walker. Seen: -0.0033 once in a full
-#: suite, +0.004 to +0.009 alone. The 1e-3 bound is the lockstep test's, where timing is out of it.
-REAL_TIME_CLEARANCE = -0.01
+#: real time: the controller samples the robot at its timer's ticks (jitter ~15 ms, states up to 25 ms
+#: old at the plant's 40 Hz), not at the plan's instants, so it also sees the robot between two planned
+#: states, and the plan keeps only those clear: at the robot's 1.2 m/s the chord of one 0.25 s sample
+#: cuts a 0.6 m walker by its sagitta, (1.2 * 0.25)^2 / (8 * 0.6) = 1.9 cm, and a command acts up to
+#: ~50 ms late (0.5 * 2 m/s^2 * 0.05^2 = 2.5 mm for this double integrator). Without a margin the run
+#: gave clearance down to -0.033 (1 cm inside) in 2 of 5 runs on a quiet machine. A 5 cm margin covers
+#: both with room; the bound is then the lockstep test's.
+REAL_TIME_MARGIN = 0.05
+REAL_TIME_CLEARANCE = -1e-3
 
 
 @pytest.mark.slow
 def test_walker_crossing_in_real_time_keeps_clearance_in_the_recorded_bag(ros_graph, tmp_path, monkeypatch):
-    """The same with the real-time plant: no collision beyond what the answer's latency explains (how
-    close the robot gets depends on how fast the controller answers; the lockstep test checks the
-    encounter and the 1e-3 bound)."""
-    metrics, _ = _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep=False)
+    """The same with the real-time plant and region_margin REAL_TIME_MARGIN: the real walker is never
+    entered (the lockstep test checks the encounter itself)."""
+    metrics, _ = _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep=False, region_margin=REAL_TIME_MARGIN)
     figures = {key: metrics.get(key) for key in ("min_clearance_obstacles", "fallbacks", "deadline_overruns",
                                                  "solve_ms")}
     print(f"walker in real time: {figures}")

@@ -124,3 +124,26 @@ def test_counterfactual_penetration_counts_a_moving_region_where_it_is_at_each_s
     # at its stamp the walker is 2 away (no penetration); at sample 4 (t = 2) its centre is on the state
     assert walker.depth((0.0, -2.0)) < 0
     assert loop_metrics(run, settings)["max_penetration"] == pytest.approx(1.0)
+
+
+@pytest.mark.slow
+def test_a_region_margin_keeps_the_robot_that_far_from_the_walker_and_changes_at_run_time():
+    """region_margin (m): the plan avoids the walker grown by it; the sampled states keep at least the
+    margin from the real walker (a circle grows by exactly the margin), the regions as set stay the
+    real ones, and a new margin takes effect at the next step without a rebuild."""
+    controller = NmpcController(robot_settings("fatrop", True))
+    builds = controller.nlp_builds
+    without = crossing(controller)
+    controller.reset()
+    controller.update_settings(region_margin=0.15)
+    plant = make_plant("continuous", controller.model, controller.settings)
+    walker = Ellipse((0.0, -4.0), (0.6, 0.6), 0.0, "output", velocity=(0.0, 0.5), stamp=0.0)
+    x, nearest, ts = np.array([-8.0, 0.0, 0.0, 0.0]), math.inf, controller.settings.sample_time
+    for k in range(56):
+        result = controller.step(x, [8.0, 0.0], [walker.at(k * ts)], time=k * ts)
+        assert controller.regions[0].semi_axes == (0.6, 0.6)  # as set
+        x = plant.advance(x, result.u, ts)
+        nearest = min(nearest, float(np.hypot(*(x[:2] - walker.at((k + 1) * ts).center))) - 0.6)
+    assert nearest >= 0.15 - 0.01, f"closest approach {nearest} m to the walker's edge with a 0.15 m margin"
+    assert without > -0.01  # without it the robot grazes the walker's edge (depth g = 1 - (d / r)^2)
+    assert controller.nlp_builds == builds

@@ -124,3 +124,42 @@ def test_ellipse_depth_sign_matches_the_rotated_quadratic_form(cx, cy, a, b, yaw
     ey = -s * (px - cx) + c * (py - cy)
     r2 = (ex / a) ** 2 + (ey / b) ** 2
     assert e.depth((px, py)) == pytest.approx(1 - r2, rel=1e-9, abs=1e-9)
+
+
+# --- the clearance margin (region_margin): inflated regions ---------------------------------------
+@given(st.floats(0.2, 3.0), st.floats(0.05, 3.0), st.floats(-3.2, 3.2), st.floats(0.01, 1.0),
+       st.floats(-math.pi, math.pi), st.floats(0.0, 0.999))
+def test_an_inflated_ellipse_holds_the_points_near_the_ellipse(a, b, yaw, margin, angle, fraction):
+    ellipse = Ellipse((1.0, -2.0), (a, b), yaw)
+    grown = ellipse.inflated(margin)
+    assert grown.semi_axes == pytest.approx((a + margin, b + margin))
+    # a boundary point of the ellipse pushed out along its outward normal by `distance`
+    c, s = math.cos(yaw), math.sin(yaw)
+    local = np.array([a * math.cos(angle), b * math.sin(angle)])
+    normal = np.array([math.cos(angle) / a, math.sin(angle) / b])
+    rotate = np.array([[c, -s], [s, c]])
+    point, normal = rotate @ local + (1.0, -2.0), rotate @ (normal / np.linalg.norm(normal))
+    guaranteed = margin if a == b else (math.sqrt(2) - 1) * margin
+    assert grown.depth(point + fraction * guaranteed * normal) > -1e-9
+    if abs(math.cos(angle)) < 1e-9 or abs(math.sin(angle)) < 1e-9:  # along an axis: the whole margin
+        assert grown.depth(point + fraction * margin * normal) > -1e-9
+
+
+def test_an_inflated_circle_grows_by_exactly_the_margin():
+    circle = Ellipse((0.0, 0.0), (0.6, 0.6)).inflated(0.05)
+    assert circle.depth((0.0, 0.649)) > 0 > circle.depth((0.651, 0.0))
+
+
+@pytest.mark.parametrize("name", ["box", "triangle", "clockwise"])
+def test_an_inflated_polygon_holds_exactly_the_points_within_the_margin_of_its_edges(name):
+    polygon, margin = REGIONS[name], 0.3
+    grown = polygon.inflated(margin)
+    planes, grown_planes = polygon.half_planes(), grown.half_planes()
+    np.testing.assert_allclose(grown_planes[:, :2], planes[:, :2], atol=1e-12)  # the same edge directions
+    np.testing.assert_allclose(grown_planes[:, 2], planes[:, 2] + margin, atol=1e-12)  # each moved out by margin
+    rng = np.random.default_rng(0)
+    for point in rng.uniform(-4, 4, size=(2000, 2)):
+        # the polygon's depth is the signed distance to its nearest edge line: > -margin within the margin
+        inside_grown = grown.depth(point) > 0
+        assert inside_grown == (polygon.depth(point) > -margin) or abs(polygon.depth(point) + margin) < 1e-9
+    assert polygon.inflated(0.0) is polygon

@@ -24,7 +24,8 @@ as it arrives, so the ROS loop reproduces the offline loop exactly.
 Diagnostics (one DiagnosticArray per sample on /diagnostics, values as strings): the counters
 `samples`, `fallbacks`, `rejected_inputs`, `deadline_overruns`, `stale` (samples without a usable
 state), `states_received` (good states), `missed_samples` (timer mode: samples with no new state
-since the last solve), `stale_episodes`; `state_age_ms` (age of
+since the last solve), `stale_episodes`, `late_samples` (timer mode: samples covered with the last
+plan's next input while a step ran late, controller_threads.py); `state_age_ms` (age of
 the state this sample used), `max_state_gap_ms` (longest interval between two good states),
 `stale_for_s` (how long the current stale episode lasts) and `last_stale_s` (length of the last
 one that ended); with a solve also `status`, `solver_status`, `iterations`, `solve_time_ms`,
@@ -166,7 +167,8 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         self.last_result: StepResult | None = None
         self.last_command = np.zeros(self.m)
         self.counts = {"samples": 0, "fallbacks": 0, "rejected_inputs": 0, "deadline_overruns": 0, "stale": 0,
-                       "states_received": 0, "missed_samples": 0, "stale_episodes": 0, "obstacle_resets": 0}
+                       "states_received": 0, "missed_samples": 0, "stale_episodes": 0, "obstacle_resets": 0,
+                       "late_samples": 0}
         self.max_state_gap = 0.0  # s, longest interval between two good states
         self.last_stale = 0.0  # s, length of the last stale episode that ended
 
@@ -208,6 +210,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                                                            LATEST_QOS)
         if not self.lockstep:
             self.timer = self.create_timer(self.controller.settings.sample_time, self.on_sample)
+            self.start_late_cover(self.controller.settings.sample_time)
         self.active = True
         self.get_logger().info("controller active")
         return SUCCESS
@@ -223,6 +226,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         # called holding the lock (a transition): no sample is running; one already taken by the
         # executor finds `active` False and does nothing
         self.active = False
+        self.stop_late_cover()  # before the timer it reads goes
         if self.timer is not None:
             self.destroy_timer(self.timer)
             self.timer = None
@@ -351,12 +355,13 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                 settings_from_values({**self.parameter_values(), **settings_changes})
                 self.options = options
                 return SetParametersResult(successful=True)
-            settings = self.controller.checked_settings(**settings_changes)
+            settings = self.controller.checked_settings(**settings_changes)  # validated, not applied yet
             safe_input = self._safe_input(options)
             target = None if options.target is None else np.asarray(finite_vector(options.target, self.p, "target"))
         except ValueError as exc:  # ConfigError is a ValueError; it names the setting and the rule
             return SetParametersResult(successful=False, reason=str(exc))
-        self.controller.settings, self.options, self.safe_input = settings, options, safe_input
+        self.controller.update_settings(**settings_changes)  # = settings; a new region_margin repacks the regions
+        self.options, self.safe_input = options, safe_input
         self.store.motion.max_speed = settings.max_obstacle_speed
         self.store.motion.max_stamp_skew = settings.max_obstacle_stamp_skew
         self.controller.set_safe_input(safe_input)
@@ -407,7 +412,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
             self.publish_certificate(self.certificate.skip("no new state"))
             if result is not None:
                 self.last_result = result
-                self.send_command(result.u)
+                self.send_command(result.u, result.inputs[1:])
                 self.publish_diagnostics(DiagnosticStatus.WARN, "no new state: next input of the last plan",
                                          result, 0.0)
                 return
@@ -426,7 +431,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         self.state_solved = True
         self.fresh_state = False
         self.last_result = result
-        self.send_command(result.u)
+        self.send_command(result.u, None if self.lockstep else result.inputs[1:])  # the late cover's inputs
         latency = time.perf_counter() - started
         if result.is_fallback:
             self.counts["fallbacks"] += 1
@@ -452,20 +457,6 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                 level = DiagnosticStatus.ERROR if certificate.level == "error" else DiagnosticStatus.WARN
             self.get_logger().warning(f"{result.status}; {note}", throttle_duration_sec=self.options.log_throttle)
         self.publish_diagnostics(level, message, result, latency)
-
-    def safe_command(self, behavior: str) -> np.ndarray:
-        """The command [m] of a stale-state or deactivate `behavior` (one of STALE_BEHAVIORS)."""
-        if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
-            return np.asarray(self.last_result.u_a, float)
-        if behavior == "last":
-            return np.asarray(self.last_command, float)
-        if behavior == "safe_input":
-            return np.asarray(self.safe_input, float)
-        return np.zeros(self.m)
-
-    def send_command(self, u: np.ndarray) -> None:
-        self.io.publish_command(u)
-        self.last_command = np.asarray(u, float)
 
     def publish_safe(self, why: str) -> None:
         """No solve: command the configured safe behaviour and report an ERROR (every sample)."""

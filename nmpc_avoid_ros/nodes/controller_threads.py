@@ -1,7 +1,7 @@
 """How the controller node always answers: its threads, callback groups and lock, the solve
 interrupt, and input logs that cost nothing when throttled.
 
-The node spins on three threads (runner.PoolExecutor), one per callback group:
+The node spins on three threads (runner.PoolExecutor), one per callback group, and has a fourth:
 
 - the lifecycle services (`transitions`): a transition request is taken while a sample runs. It
   first interrupts the solver worker (core/nlp/worker.py: the call in progress is abandoned at once,
@@ -12,7 +12,18 @@ The node spins on three threads (runner.PoolExecutor), one per callback group:
   deserialised (~0.2 s of Python for 1000 markers, measured) beside a running sample, and applied
   there too, to a copy of the region store that replaces it whole under the lock (apply of 1000
   markers: 0.1-0.3 s, measured), so a sample neither waits for it nor sees half a message;
-- everything else, the default group as before: the samples, `state`, the parameter services.
+- everything else, the default group as before: the samples, `state`, the parameter services;
+- the late cover (a thread of its own, not an executor's: under a 200 Hz flood the executor handed
+  out a timer ~0.3 s late; timer mode): a command every sample even when the sample is late (a
+  step may take 10x max_solve_time on a cold start, core/sample/controller.py; a flood of 1000-marker
+  arrays competes for the interpreter). Every sample_time / LATE_CHECKS it looks whether the
+  sample timer's last tick is still unanswered LATE_ALLOWANCE sample periods after it while a plan
+  is in force; then it publishes the plan's next input (the shifted plan, as `coast` would; then
+  its u_a), counted in `late_samples`. Every command of a sample re-arms it with the rest of its
+  plan; a safe-behaviour command (stale state, deactivate) disarms it. So once a plan exists no gap
+  between two commands exceeds (1 + LATE_ALLOWANCE + 1/LATE_CHECKS) = 1.26 sample periods plus the
+  interpreter's latency; a sample answered within 0.2 sample periods (the usual few ms) never
+  meets it.
 
 `lock` (reentrant: on_state runs on_sample) keeps the node's state to one callback at a time, as
 the single-threaded executor did. SIGINT/SIGTERM interrupt the worker from the signal handler
@@ -29,9 +40,15 @@ import threading
 import time
 from collections.abc import Iterator
 
+import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 
 from ..core.errors import RegionError
+
+#: the late cover (see the module docstring): checks per sample period, and how late (sample periods
+#: after its tick) a sample's command may be before the cover publishes
+LATE_CHECKS = 16
+LATE_ALLOWANCE = 0.2
 
 #: the standard lifecycle_msgs services of a managed node
 LIFECYCLE_SERVICES = ("change_state", "get_state", "get_available_states", "get_available_transitions",
@@ -77,7 +94,8 @@ def transition(method):
 
 
 class AlwaysAnswers:
-    """Mixin of the controller node (a LifecycleNode with `controller`, `options`, `last_obstacle_issue`)."""
+    """Mixin of the controller node (a LifecycleNode with `controller`, `options`, `io`, `counts`,
+    `last_result`, `safe_input`, `last_obstacle_issue`)."""
 
     def setup_threads(self) -> None:
         """Right after LifecycleNode.__init__: the lock, the flags, the callback groups."""
@@ -91,6 +109,78 @@ class AlwaysAnswers:
                       self.transitions)
         #: the latched inputs' readers: one at a time, beside the samples (configure moves them here)
         self.inputs = MutuallyExclusiveCallbackGroup()
+        #: the late cover's thread and its stop flag (timer mode, while active)
+        self._late_thread: threading.Thread | None = None
+        self._late_stop = threading.Event()
+        # the command publication and the cover's state, one thread at a time (never held across a step)
+        self._command_lock = threading.Lock()
+        self._cover_inputs = None  # the rest of the plan in force (inputs [m]), None: no cover
+        self._last_command_at = -math.inf  # node-clock s of the last command published
+
+    def start_late_cover(self, sample_time: float) -> None:
+        """Timer mode, on activate: check every sample_time / LATE_CHECKS (wall clock; the gap itself is
+        measured on the node clock) for a sample running late."""
+        self._late_stop = threading.Event()
+        period, stop = sample_time / LATE_CHECKS, self._late_stop
+
+        def watch() -> None:
+            while not stop.wait(period):
+                try:
+                    self.on_late_check()
+                except Exception as exc:  # noqa: BLE001 - a node being torn down; the cover must not die silently
+                    if not (stop.is_set() or self.stopping):
+                        self.log_throttled("late_cover", "warning", f"late cover: {exc!r}")
+
+        self._late_thread = threading.Thread(target=watch, name="late_cover", daemon=True)
+        self._late_thread.start()
+
+    def stop_late_cover(self) -> None:
+        self._late_stop.set()
+        if self._late_thread is not None and self._late_thread is not threading.current_thread():
+            self._late_thread.join(timeout=1.0)
+        self._late_thread = None
+        with self._command_lock:
+            self._cover_inputs = None
+
+    def send_command(self, u, next_inputs=None) -> None:
+        """Publish the command u [m] and keep it as the last one; `next_inputs` [k, m] (the rest of the
+        plan it comes from) arm the late cover, None disarms it."""
+        with self._command_lock:
+            self.io.publish_command(u)
+            self._last_command_at = self.now()
+            self._cover_inputs = None if next_inputs is None or len(next_inputs) == 0 else list(next_inputs)
+        self.last_command = np.asarray(u, float)
+
+    def safe_command(self, behavior: str) -> np.ndarray:
+        """The command [m] of a stale-state or deactivate `behavior` (one of STALE_BEHAVIORS)."""
+        if behavior == "hold_steady" and self.last_result is not None and np.all(np.isfinite(self.last_result.u_a)):
+            return np.asarray(self.last_result.u_a, float)
+        if behavior == "last":
+            return np.asarray(self.last_command, float)
+        if behavior == "safe_input":
+            return np.asarray(self.safe_input, float)
+        return np.zeros(self.m)
+
+    def on_late_check(self) -> None:
+        """The late cover's check: a plan in force and the sample timer's last tick unanswered for
+        LATE_ALLOWANCE sample periods: the plan's next input now. Takes only the command lock."""
+        with self._command_lock:
+            inputs = self._cover_inputs
+            if inputs is None or self.stopping or not self.active:
+                return
+            now, period = self.now(), self.controller.settings.sample_time
+            until_next = self.timer.time_until_next_call()
+            if until_next is None:  # the timer is cancelled
+                return
+            next_tick = now + until_next * 1e-9
+            last_tick = next_tick if next_tick <= now else next_tick - period  # a tick not yet served is the last
+            if self._last_command_at >= last_tick or now - last_tick < LATE_ALLOWANCE * period:
+                return
+            u = inputs.pop(0) if len(inputs) > 1 else inputs[0]  # the plan's inputs, then its last (u_a)
+            self.io.publish_command(u)
+            self._last_command_at = now
+            self.counts["late_samples"] += 1
+        self.log_throttled("late", "warning", "a sample is late: applying the next input of the last plan")
 
     @contextlib.contextmanager
     def applied_beside_samples(self, msg) -> Iterator:

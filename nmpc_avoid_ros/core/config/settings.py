@@ -120,6 +120,11 @@ class ControllerSettings:
                                low=0.0, low_open=True)
     feasibility_tolerance: float = setting(1e-6, "a budget-cut iterate is applied only if its constraint violation "
                                                  "is below this", runtime=True, low=0.0, low_open=True)
+    region_margin: float = setting(
+        0.0, "obstacles are planned around inflated by this much, plane units (ellipse semi-axes longer, polygon "
+             "edges moved out): room for what the prediction does not see, the motion between samples and the "
+             "loop's latency (docs/design.md, 'Clearance margin'); the recorded clearance is the real regions'",
+        runtime=True, low=0.0)
     predict_obstacles: bool = setting(True, "predict moving obstacles over the horizon (stage k sees c + v (t_k - "
                                             "stamp)); false: each stays where it was last seen", runtime=True)
     max_obstacle_speed: float = setting(3.0, "largest obstacle speed accepted, plane units/s: a faster given velocity "

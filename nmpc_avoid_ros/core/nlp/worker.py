@@ -54,6 +54,12 @@ _STATUS_BYTES = 64
 #: header: iterations (int64), solve seconds (float64), status length (int64), status bytes
 _HEADER = struct.Struct(f"qdq{_STATUS_BYTES}s")
 
+#: a request: the NLP's index and whether the solve is cold
+REQUEST = struct.Struct("<IB")
+#: how long each side polls for the other before it sleeps, s: a wake-up of a sleeping process costs
+#: ~0.1 ms on this VM, twice per call (BENCHMARKS.md); polling costs a core for at most this long
+SPIN_SECONDS = 2e-3
+
 _PR_SET_PDEATHSIG = 1
 
 
@@ -136,7 +142,7 @@ class SolveWorker:
                 np.copyto(self._inputs[n_w:n_w + n_p], par)
                 np.copyto(self._inputs[n_w + n_p:2 * n_w + n_p], lam_x0)
                 np.copyto(self._inputs[2 * n_w + n_p:2 * n_w + n_p + n_g], lam_g0)
-                os.write(self._child.request, struct.pack("<IB", self._index[id(nlp)], int(cold)))
+                os.write(self._child.request, REQUEST.pack(self._index[id(nlp)], int(cold)))
                 if self._wait(deadline):
                     iterations, seconds, length, raw = _HEADER.unpack_from(self._memory, 0)
                     out = self._outputs
@@ -149,15 +155,26 @@ class SolveWorker:
             time.perf_counter() - begin
 
     def _wait(self, deadline: float) -> bool:
-        """Whether the child answered before `deadline` (False also when it died or on `interrupt()`)."""
-        watched = [self._child.answer, self._wakeup[0]]
+        """Whether the child answered before `deadline` (False also when it died or on `interrupt()`).
+
+        First SPIN_SECONDS of polling reads (most fast-path solves answer within them: no wake-up of a
+        sleeping parent), then a select() that sleeps until the answer, the deadline or an interrupt."""
+        answer = self._child.answer
+        spin_end = min(deadline, time.perf_counter() + SPIN_SECONDS)
+        while not self._interrupted and time.perf_counter() < spin_end:
+            reply = _poll(answer)
+            if reply is not None:
+                return reply == b"."
+        watched = [answer, self._wakeup[0]]
         while not self._interrupted:
             left = deadline - time.perf_counter()
             if left <= 0:
                 return False
             ready, _, _ = select.select(watched, [], [], None if math.isinf(left) else left)
-            if self._child.answer in ready:
-                return os.read(self._child.answer, 1) == b"."
+            if answer in ready:
+                reply = _poll(answer)
+                if reply is not None:
+                    return reply == b"."
             if self._wakeup[0] in ready and not self._interrupted:
                 self._drain_wakeup()  # the byte of an interrupt() that a resume() overtook: keep waiting
         return False
@@ -180,6 +197,7 @@ class SolveWorker:
             self._serve(request_read, answer_write)
         os.close(request_read)
         os.close(answer_write)
+        os.set_blocking(answer_read, False)  # polled (see _wait)
         self._child.pid, self._child.request, self._child.answer = pid, request_write, answer_read
         self.forks += 1
 
@@ -190,17 +208,20 @@ class SolveWorker:
 
     # -- the child's side ------------------------------------------------------------------
     def _serve(self, request: int, answer: int) -> None:
-        """The child's loop: solve each request, answer with one byte; exit on end of file."""
+        """The child's loop: solve each request, answer with one byte; exit on end of file. After an
+        answer it polls for the next request for SPIN_SECONDS (the next call of the same sample comes
+        within them: no wake-up of a sleeping child), then sleeps in select()."""
         try:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             _die_with_parent()
             for nlp in self._nlps:
                 nlp.worker = None  # solve here, not through a worker
+            os.set_blocking(request, False)
             while True:
-                message = _read_exactly(request, 5)
+                message = _next_request(request)
                 if message is None:
                     break
-                index, cold = struct.unpack("<IB", message)
+                index, cold = REQUEST.unpack(message)
                 self._solve_here(self._nlps[index], bool(cold))
                 os.write(answer, b".")
         finally:
@@ -266,11 +287,23 @@ def _release(child: _Child, wakeup: list[int]) -> None:
             pass
 
 
-def _read_exactly(fd: int, count: int) -> bytes | None:
-    data = b""
-    while len(data) < count:
-        chunk = os.read(fd, count - len(data))
-        if not chunk:
-            return None
-        data += chunk
-    return data
+def _poll(fd: int) -> bytes | None:
+    """One byte from the non-blocking pipe end `fd`: b"" at end of file, None when none is there yet."""
+    try:
+        return os.read(fd, 1)
+    except BlockingIOError:
+        return None
+
+
+def _next_request(fd: int) -> bytes | None:
+    """The next REQUEST.size-byte request from the non-blocking pipe end `fd` (polled for SPIN_SECONDS,
+    then waited for), or None at end of file. A request is written whole (below PIPE_BUF: atomic)."""
+    spin_end = time.perf_counter() + SPIN_SECONDS
+    while True:
+        try:
+            data = os.read(fd, REQUEST.size)
+        except BlockingIOError:
+            if time.perf_counter() >= spin_end:
+                select.select([fd], [], [])
+            continue
+        return data if len(data) == REQUEST.size else None

@@ -156,6 +156,13 @@ class Ellipse(_Moving):
         """g at a point of the plane at time `stamp`: 1 - normalised squared radius (> 0 inside)."""
         return float(ellipse_g(np.asarray(point, float), self.slot_values()))
 
+    def inflated(self, margin: float) -> Ellipse:
+        """The ellipse with both semi-axes longer by `margin` (plane units, >= 0). A circle grows by exactly
+        `margin`; an ellipse holds every point within `margin` of it along its axes and, in any
+        direction, within (sqrt(2) - 1) `margin` at least (the worst case: a needle-thin ellipse)."""
+        return self if margin == 0 else dataclasses.replace(
+            self, semi_axes=(self.semi_axes[0] + margin, self.semi_axes[1] + margin))
+
 
 @dataclass(frozen=True)
 class Polygon(_Moving):
@@ -233,6 +240,17 @@ class Polygon(_Moving):
     def with_motion(self, velocity: Sequence[float], stamp: float) -> Polygon:
         """The same polygon moving at `velocity` (units/s), its vertices valid at `stamp` (s)."""
         return dataclasses.replace(self, velocity=tuple(velocity), stamp=stamp)
+
+    def inflated(self, margin: float) -> Polygon:
+        """The polygon with every edge moved outward by `margin` (plane units, >= 0; the corners mitred):
+        it holds every point within `margin` of this one."""
+        if margin == 0:
+            return self
+        normals = self.half_planes()[:, :2]
+        before = np.roll(normals, 1, axis=0)  # the edge that ends at each vertex
+        # vertex i lies on edges i-1 and i: moved to where both offset edges meet
+        shift = margin * (before + normals) / (1.0 + np.einsum("ij,ij->i", before, normals))[:, None]
+        return dataclasses.replace(self, vertices=tuple(map(tuple, np.asarray(self.vertices) + shift)))
 
     def at(self, t: float) -> Polygon:
         """The polygon at time t (s): translated by velocity * (t - stamp), same velocity."""

@@ -80,7 +80,8 @@ class NmpcController:
                                                                             COLD_START_ITERATIONS),
                                          max_solve_time=self.settings.max_solve_time * COLD_START_TIME_FACTOR)
             self.cold_nlp = TrackingNlp(cold, self.model)
-        self._regions: tuple[Region, ...] = ()
+        self._given: tuple[Region, ...] = ()  # as set
+        self._regions: tuple[Region, ...] = ()  # as planned around: inflated by region_margin
         self._moving = False
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
@@ -135,12 +136,16 @@ class NmpcController:
     # -- run-time changes (never rebuild) ---------------------------------------------------
     @property
     def regions(self) -> tuple[Region, ...]:
-        return self._regions
+        """The obstacle regions as set (the plan avoids them inflated by `region_margin`)."""
+        return self._given
 
     def set_regions(self, regions: Sequence[Region]) -> None:
         """Replace the obstacle regions (RegionError if they do not fit the slots; nothing changes then)."""
-        slots = self.nlp.slot_layout.pack(list(regions), self.nlp.output_frame_available, predict=False)
-        self._regions, self._slots = tuple(regions), slots
+        given = tuple(regions)
+        planned = tuple(r.inflated(self.settings.region_margin) for r in given) \
+            if all(isinstance(r, Region) for r in given) else given  # pack refuses what is no region
+        slots = self.nlp.slot_layout.pack(list(planned), self.nlp.output_frame_available, predict=False)
+        self._given, self._regions, self._slots = given, planned, slots
         self.tiered.set_regions(self._regions)
         self._moving = any(r.moving for r in self._regions)
 
@@ -174,8 +179,11 @@ class NmpcController:
         return new
 
     def update_settings(self, **changes: float | Sequence[float]) -> None:
-        """Change run-time fields (mu, kappa, weights, predict_obstacles) for the next step; nothing is rebuilt."""
+        """Change run-time fields (mu, kappa, weights, predict_obstacles, ...) for the next step; nothing is rebuilt."""
+        margin = self.settings.region_margin
         self.settings = self.checked_settings(**changes)
+        if self.settings.region_margin != margin:
+            self.set_regions(self._given)
 
     def in_solve_domain(self, x: np.ndarray) -> bool:
         """Whether the state x [n] lies within `solve_domain_margin` box widths of the state box (each
@@ -485,11 +493,8 @@ class NmpcController:
     def set_safe_input(self, u: Sequence[float]) -> None:
         """The model's safe input [m], one of the fallback's candidates (InputError if malformed or
         outside the input box)."""
-        self.fallback.safe_input = self.check_safe_input(u)
+        self.fallback.safe_input = self.fallback.check_safe_input(u)
 
     def check_safe_input(self, u: Sequence[float]) -> np.ndarray:
         """u as a safe input [m], or InputError if malformed or outside the input box."""
-        u = validate_vector("safe_input", u, self.model.m)
-        if np.any(u < self._input_lo) or np.any(u > self._input_hi):
-            raise InputError(f"safe_input {u.tolist()} is outside the input box")
-        return u
+        return self.fallback.check_safe_input(u)

@@ -22,15 +22,18 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from ..config.settings import ControllerSettings
+from ..errors import InputError
 from ..nlp.search import VIOLATION_TOLERANCE
 from ..nlp.tracking import SEARCH_SHARE, NlpBase, problem_parts
 from ..problem.models import Model
+from .step_result import validate_vector
 
 #: candidates in order of preference among equal predicted violations
 CANDIDATES = ("shift", "steady", "safe", "recovery")
@@ -136,6 +139,13 @@ class FallbackSelector:
         self._input_lo, self._input_hi = lo, hi
         #: the model's safe input [m] (NmpcController.set_safe_input); zero clipped to the input box
         self.safe_input = np.clip(np.zeros(m), lo, hi)
+
+    def check_safe_input(self, u: Sequence[float]) -> np.ndarray:
+        """u as a safe input [m], or InputError if malformed or outside the input box."""
+        u = validate_vector("safe_input", u, self.model.m)
+        if np.any(u < self._input_lo) or np.any(u > self._input_hi):
+            raise InputError(f"safe_input {u.tolist()} is outside the input box")
+        return u
 
     def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
         """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""
