@@ -252,6 +252,7 @@ class LossyRelay:
         self.rng = random.Random(seed)
         self.queue: list[tuple[float, int, list[float]]] = []
         self.received = self.dropped = self.relayed = 0
+        self.bursts = 0  # release() calls that published (a held-back state goes out with the ones behind it)
         self.blackout_until: float | None = None
         self.release_at = 0.0
         self.closed = False  # stop relaying (to count what arrived)
@@ -280,6 +281,7 @@ class LossyRelay:
 
     def release(self) -> None:
         now = time.monotonic()
+        self.bursts += bool(self.queue and self.queue[0][0] <= now)
         while self.queue and self.queue[0][0] <= now:
             _, _, x = heapq.heappop(self.queue)
             self.listen.state_pub.publish(Float64MultiArray(data=x))
@@ -309,12 +311,23 @@ def test_state_loss_and_delay_keep_the_loop_stable_and_inside_the_constraint(ros
     # the box |x2| <= 2 is a constraint on the Euler prediction; the continuous plant with delayed
     # states overshoots it (measured up to 2.19 here, 1.94 without faults): bounded, not kept exactly
     assert np.all(np.abs(xs[:, 0]) <= 6.0) and x2_max <= 2.3, x2_max
-    # what the controller saw: exactly the states the relay let through, the blackout as a gap
+    # what the controller saw: the states the relay let through, the blackout as a gap. It reads the
+    # latest state only (LATEST_QOS): of the states one release sends together (a delayed one holds
+    # back those behind it) it may take only the last, and of two releases 5 ms apart only the later:
+    # never more than relayed, nearly one per release (236 of 237 releases, 263 states, measured)
     relay.closed = True
-    accounted = lambda: bool(listen.diags) and listen.diags[-1]["states_received"] == str(relay.relayed)  # noqa: E731
-    wait(listen, "the controller counts every relayed state", accounted, 10, ctrl)
+    counts: list[str] = []
+
+    def accounted() -> bool:  # the count has stopped changing (the last relayed state is taken)
+        if listen.diags:
+            counts.append(listen.diags[-1]["states_received"])
+        return len(counts) >= 40 and len(set(counts[-40:])) == 1
+
+    wait(listen, "the controller's state count settles", accounted, 10, ctrl)
     last = listen.diags[-1]
-    assert relay.relayed < relay.received and int(last["states_received"]) == relay.relayed
+    assert relay.relayed < relay.received
+    assert 0.9 * relay.bursts <= int(last["states_received"]) <= relay.relayed, (last["states_received"], relay.bursts,
+                                                                           relay.relayed)
     assert int(last["missed_samples"]) >= 1 and float(last["max_state_gap_ms"]) >= 1000.0, last
     assert last["stale"] == "0" and last["stale_episodes"] == "0"
     solved = [d for d in listen.diags if "status" in d]

@@ -12,6 +12,7 @@ request, and no solver child process may outlive the call.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import time
@@ -26,11 +27,14 @@ from visualization_msgs.msg import MarkerArray
 
 from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
 from nmpc_avoid_ros.ros.markers import delete_all_marker, regions_to_markers
+from nmpc_avoid_ros.ros.parameters import STREAM_QOS
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 #: the time within which a signal or a deactivate request is honoured mid-solve, s
 HONOURED_WITHIN = 1.0
+#: config/van_der_pol.yaml's sample time, s
+SAMPLE_TIME = 0.5
 #: a max_solve_time whose cold-start bound (x10) is far beyond HONOURED_WITHIN
 LONG_SOLVE_TIME = 5.0
 LONG_STATE = [-1.2037311688776526, -1.4937531114485765]
@@ -152,3 +156,37 @@ def test_deactivate_mid_solve_is_honoured_within_a_second_then_activate_serves_a
     code = ctrl.stop()
     print(f"SIGINT (idle): exit code {code} after {time.monotonic() - sent:.3f} s")
     assert code == 0
+
+
+def test_a_late_sample_is_covered_by_the_plans_next_inputs(ros_graph):
+    """Timer mode, a plan in force; then the long solve's regions and state: that step takes ~4 s
+    (abandoned at 0.8 max_solve_time, measured offline: 4.04 s). Meanwhile the node's late cover
+    (nodes/controller_threads.py) publishes the plan's next inputs, so no gap between two commands
+    is longer than 1.5 sample periods, and the samples it covered are counted."""
+    _, _, start, probe = ros_graph
+    p = probe()
+    listen = Listener(p)
+    stamps: list[float] = []  # the controller's source timestamps of `command`, s
+    p.node.create_subscription(Float64MultiArray, "command",
+                               lambda _msg, info: stamps.append(info["source_timestamp"] * 1e-9), STREAM_QOS)
+    state = [0.0, 0.0]
+    p.node.create_timer(0.05, lambda: listen.state_pub.publish(Float64MultiArray(data=state)))  # the plant, 20 Hz
+    listen.publish_target(5.0)
+    ctrl = start("controller", *PARAMS, "-p", f"max_solve_time:={LONG_SOLVE_TIME}")
+    assert listen.spin_until(lambda: len(stamps) >= 4, 120), ctrl.output()  # a plan is in force
+    listen.obstacles.publish(regions_to_markers(LONG_REGIONS))
+    assert listen.spin_until(lambda: "4 region(s) stored" in ctrl.output(), 10), ctrl.output()[-3000:]
+    switched = time.time()
+    state[:] = LONG_STATE
+    listen.probe.spin_for(5.0)
+    during = [t for t in stamps if t >= switched]
+    edges = [switched, *during, time.time()]
+    gap = max(b - a for a, b in zip(edges, edges[1:]))
+    late = [int(d["late_samples"]) for d in listen.diags if "late_samples" in d]
+    print(f"late cover: {len(during)} commands in 5 s after the switch, max gap {gap:.3f} s, "
+          f"late_samples {late[-1] if late else None}")
+    assert gap <= 1.5 * SAMPLE_TIME, (gap, during, ctrl.output()[-3000:])
+    assert all(math.isfinite(v) for c in listen.commands for v in c), listen.commands
+    # the step returned after ~4 s: its diagnostics count the samples the cover answered meanwhile
+    assert listen.spin_until(lambda: any(int(d.get("late_samples", 0)) >= 5 for d in listen.diags), 60), \
+        (late, ctrl.output()[-3000:])

@@ -13,8 +13,8 @@ The node spins on three threads (runner.PoolExecutor), one per callback group, a
   there too, to a copy of the region store that replaces it whole under the lock (apply of 1000
   markers: 0.1-0.3 s, measured), so a sample neither waits for it nor sees half a message;
 - everything else, the default group as before: the samples, `state`, the parameter services;
-- the late cover (a thread of its own, not an executor's: under a 200 Hz flood the executor handed
-  out a timer ~0.3 s late; timer mode): a command every sample even when the sample is late (a
+- the late cover (timer mode; a thread of its own, not an executor's timer, which waited for the
+  busy executor under a 200 Hz flood): a command every sample even when the sample is late (a
   step may take 10x max_solve_time on a cold start, core/sample/controller.py; a flood of 1000-marker
   arrays competes for the interpreter). Every sample_time / LATE_CHECKS it looks whether the
   sample timer's last tick is still unanswered LATE_ALLOWANCE sample periods after it while a plan
@@ -142,7 +142,7 @@ class AlwaysAnswers:
         with self._command_lock:
             self._cover_inputs = None
 
-    def send_command(self, u, next_inputs=None) -> None:
+    def send_command(self, u: np.ndarray, next_inputs: np.ndarray | None = None) -> None:
         """Publish the command u [m] and keep it as the last one; `next_inputs` [k, m] (the rest of the
         plan it comes from) arm the late cover, None disarms it."""
         with self._command_lock:
@@ -172,13 +172,16 @@ class AlwaysAnswers:
             until_next = self.timer.time_until_next_call()
             if until_next is None:  # the timer is cancelled
                 return
+            # the timer's next call is its first unserved tick while a sample runs over: the ticks go on
+            # every period from there (so a sample 4 s long is covered every period, not once)
             next_tick = now + until_next * 1e-9
-            last_tick = next_tick if next_tick <= now else next_tick - period  # a tick not yet served is the last
+            last_tick = next_tick - period if next_tick > now else next_tick + (now - next_tick) // period * period
             if self._last_command_at >= last_tick or now - last_tick < LATE_ALLOWANCE * period:
                 return
             u = inputs.pop(0) if len(inputs) > 1 else inputs[0]  # the plan's inputs, then its last (u_a)
             self.io.publish_command(u)
             self._last_command_at = now
+            self.last_command = np.asarray(u, float)
             self.counts["late_samples"] += 1
         self.log_throttled("late", "warning", "a sample is late: applying the next input of the last plan")
 
