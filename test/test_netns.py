@@ -113,9 +113,24 @@ def test_plant_and_controller_in_two_network_namespaces_close_the_loop(two_hosts
 
     bag_path = tmp_path / "controller_host.mcap"
     try:
-        plant = start("plant", "plant", *PARAMS)
-        ctrl = start("controller", "controller", *PARAMS, "-p", "target:=[5.0]")
+        # the recorder and the plant first, the controller once the bag holds the resting plant's states:
+        # started together, the recorder once matched /state across the veth only after the loop had
+        # moved the plant from -5 to -4.34 (the controller starts in a second or two from its cache)
         rec = start("controller", "recorder", "--ros-args", "-p", f"output:={bag_path}", "-p", "flush_period:=0.5")
+        plant = start("plant", "plant", *PARAMS)
+
+        def recorded_states() -> list:
+            try:
+                return load_bag(bag_path).topics.get("/state", []) if bag_path.exists() else []
+            except BagError:
+                return []
+
+        end = time.monotonic() + 60
+        while not recorded_states():
+            assert time.monotonic() < end and rec.alive() and plant.alive(), (rec.output()[-2000:],
+                                                                              plant.output()[-2000:])
+            time.sleep(0.5)
+        ctrl = start("controller", "controller", *PARAMS, "-p", "target:=[5.0]")
         end = time.monotonic() + 90
         bag = None
         while time.monotonic() < end:
