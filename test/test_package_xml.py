@@ -33,6 +33,7 @@ PIP_TO_ROSDEP: dict[str, str | None] = {
     "pytest": "python3-pytest",
     "hypothesis": "python3-hypothesis",
     "ruff": None,  # the linter of `make test`, not a dependency of the package
+    "pytest-xdist": None,  # `make test-core` on two processes only; colcon test runs one
     "colcon-core": None,  # build tool (colcon comes with a ROS installation)
     "colcon-ros": None,
     "colcon-python-setup-py": None,
