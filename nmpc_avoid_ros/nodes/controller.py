@@ -358,9 +358,9 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
             settings = self.controller.checked_settings(**settings_changes)  # validated, not applied yet
             safe_input = self._safe_input(options)
             target = None if options.target is None else np.asarray(finite_vector(options.target, self.p, "target"))
+            self.controller.update_settings(**settings_changes)  # = settings; a new region_margin repacks the regions
         except ValueError as exc:  # ConfigError is a ValueError; it names the setting and the rule
             return SetParametersResult(successful=False, reason=str(exc))
-        self.controller.update_settings(**settings_changes)  # = settings; a new region_margin repacks the regions
         self.options, self.safe_input = options, safe_input
         self.store.motion.max_speed = settings.max_obstacle_speed
         self.store.motion.max_stamp_skew = settings.max_obstacle_stamp_skew

@@ -139,11 +139,12 @@ class NmpcController:
         """The obstacle regions as set (the plan avoids them inflated by `region_margin`)."""
         return self._given
 
-    def set_regions(self, regions: Sequence[Region]) -> None:
-        """Replace the obstacle regions (RegionError if they do not fit the slots; nothing changes then)."""
+    def set_regions(self, regions: Sequence[Region], margin: float | None = None) -> None:
+        """Replace the obstacle regions, planned around inflated by `margin` (default region_margin);
+        RegionError if they do not fit the slots, nothing changes then."""
+        m = self.settings.region_margin if margin is None else margin
         given = tuple(regions)
-        planned = tuple(r.inflated(self.settings.region_margin) for r in given) \
-            if all(isinstance(r, Region) for r in given) else given  # pack refuses what is no region
+        planned = tuple(r.inflated(m) if isinstance(r, Region) else r for r in given)
         slots = self.nlp.slot_layout.pack(list(planned), self.nlp.output_frame_available, predict=False)
         self._given, self._regions, self._slots = given, planned, slots
         self.tiered.set_regions(self._regions)
@@ -180,10 +181,10 @@ class NmpcController:
 
     def update_settings(self, **changes: float | Sequence[float]) -> None:
         """Change run-time fields (mu, kappa, weights, predict_obstacles, ...) for the next step; nothing is rebuilt."""
-        margin = self.settings.region_margin
-        self.settings = self.checked_settings(**changes)
-        if self.settings.region_margin != margin:
-            self.set_regions(self._given)
+        new = self.checked_settings(**changes)
+        if new.region_margin != self.settings.region_margin:
+            self.set_regions(self._given, new.region_margin)  # RegionError: nothing changes
+        self.settings = new
 
     def in_solve_domain(self, x: np.ndarray) -> bool:
         """Whether the state x [n] lies within `solve_domain_margin` box widths of the state box (each
@@ -491,8 +492,7 @@ class NmpcController:
         return self._result(plan, predicted, plan.age, status, "no_new_state", 0, False)
 
     def set_safe_input(self, u: Sequence[float]) -> None:
-        """The model's safe input [m], one of the fallback's candidates (InputError if malformed or
-        outside the input box)."""
+        """The model's safe input [m], a fallback candidate (InputError if malformed or outside the input box)."""
         self.fallback.safe_input = self.fallback.check_safe_input(u)
 
     def check_safe_input(self, u: Sequence[float]) -> np.ndarray:
