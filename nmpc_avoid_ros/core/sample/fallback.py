@@ -90,7 +90,7 @@ class _StopAt(ca.Callback):
     def get_sparsity_in(self, i: int) -> ca.Sparsity:
         return ca.Sparsity.dense(self._sizes[ca.nlpsol_out(i)], 1)
 
-    def eval(self, arg: list) -> list:
+    def eval(self, arg: list) -> list:  # CasADi Callback's method name (no Python eval anywhere)
         return [1 if time.perf_counter() >= self.end else 0]
 
 
