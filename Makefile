@@ -1,5 +1,5 @@
 # The two commands of the README: `make demo` and `make test`. Both bootstrap .venv from the
-# pinned requirements on a fresh machine (Python 3.11, no ROS distribution: Jazzy wheels from PyPI).
+# pinned requirements on a fresh machine (Python 3.11 or 3.12, no ROS distribution: Jazzy wheels from PyPI).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   ?= .venv
 BIN    := $(VENV)/bin

@@ -33,6 +33,7 @@ def demo_out(tmp_path_factory):
     env = ros_env(60 + (hash(str(out)) % 30), out / "ros_logs")
     res = cli("demo", "--out", str(out), "--lockstep", env=env, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
+    (out.parent / f"{out.name}.stdout").write_text(res.stdout)  # beside the folder: not one of its files
     return out
 
 
@@ -42,6 +43,10 @@ def test_demo_leaves_bags_metrics_and_figures(demo_out):
     for name in ("with_avoidance.mcap", "without_avoidance.mcap", "metrics.json", "phase_portrait.png",
                  "time_series.png", "value_function.png", "report.html"):
         assert (demo_out / name).stat().st_size > 1000, name
+    # its last line names every file it left in the folder (report.html and value_function.png were missing)
+    last = (demo_out.parent / f"{demo_out.name}.stdout").read_text().strip().splitlines()[-1]
+    files = sorted(f.name for f in demo_out.iterdir() if f.is_file())
+    assert last == f"demo: wrote {', '.join(files)} in {demo_out}/", (last, files)
 
 
 @pytest.mark.slow

@@ -202,14 +202,19 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.scene:
         return _scene_main(args)
+    started = time.time()
     try:
         run_demo(args.out, args.config or default_config_path(), args.steps, args.lockstep, args.timeout)
     except NmpcError as exc:
         print(f"demo: error: {exc}", file=sys.stderr)
         return 1
-    print(f"demo: wrote {args.out}/with_avoidance.mcap, without_avoidance.mcap, metrics.json, phase_portrait.png, "
-          "time_series.png")
+    print(f"demo: wrote {', '.join(written_since(Path(args.out), started))} in {args.out}/")
     return 0
+
+
+def written_since(folder: Path, started: float) -> list[str]:
+    """The names of the files in `folder` written since `started` (time.time() s), sorted."""
+    return sorted(f.name for f in folder.iterdir() if f.is_file() and f.stat().st_mtime >= started - 1.0)
 
 
 def _scene_main(args: argparse.Namespace) -> int:
