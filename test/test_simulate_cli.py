@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 
+from nmpc_avoid_ros.bag.figures import Trace, covering_limits, phase_portrait
 from nmpc_avoid_ros.core.sample.status import StepStatus
 from nmpc_avoid_ros.tools.simulate import main as simulate_main
 
@@ -85,3 +86,15 @@ def test_params_file_keys_of_the_controller_node_are_exactly_its_declared_parame
     from nmpc_avoid_ros.nodes.controller import NODE_SPECS
 
     assert NODE_ONLY_PARAMETERS == {spec.name for spec in NODE_SPECS} | {"use_sim_time"}
+
+
+def test_the_phase_portrait_spans_every_trajectory(tmp_path):
+    """The run without avoidance reaches |x2| = 2.24, beyond the paper's +-2 window: the axes widen to
+    hold it (and never shrink below the window)."""
+    t = np.arange(4) * 0.5
+    inside = Trace("inside", t, np.array([[-5.0, 0.0], [-1.0, 1.0], [2.0, -1.5], [5.0, 0.0]]), np.zeros((3, 1)))
+    beyond = Trace("beyond", t, np.array([[-5.0, 0.0], [-1.0, 2.24], [7.5, -2.6], [5.0, np.nan]]), np.zeros((3, 1)))
+    assert covering_limits([inside], (-6.0, 6.0), (-2.0, 2.0)) == ((-6.0, 6.0), (-2.0, 2.0))
+    (x_lo, x_hi), (y_lo, y_hi) = covering_limits([inside, beyond], (-6.0, 6.0), (-2.0, 2.0))
+    assert x_lo == -6.0 and x_hi > 7.5 and y_lo < -2.6 and y_hi > 2.24
+    assert phase_portrait([inside, beyond], tmp_path / "p.png").stat().st_size > 10_000

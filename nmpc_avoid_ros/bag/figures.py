@@ -74,10 +74,27 @@ def draw_snapshots(ax: plt.Axes, trace: Trace, color: str) -> None:
                     color=color)
 
 
+def covering_limits(traces: Sequence[Trace], xlim: tuple[float, float], ylim: tuple[float, float]
+                    ) -> tuple[tuple[float, float], tuple[float, float]]:
+    """xlim, ylim widened (by 5 % of the span beyond a trajectory's extreme) so that every finite (x1, x2)
+    of the traces is inside: the run without avoidance reaches |x2| = 2.24 beyond the paper's +-2."""
+    points = np.vstack([np.asarray(t.x, float)[:, :2] for t in traces]) if traces else np.empty((0, 2))
+    points = points[np.all(np.isfinite(points), axis=1)]
+    limits = []
+    for axis, (lo, hi) in enumerate((xlim, ylim)):
+        if len(points):
+            pad = 0.05 * (hi - lo)
+            lo, hi = min(lo, points[:, axis].min() - pad), max(hi, points[:, axis].max() + pad)
+        limits.append((float(lo), float(hi)))
+    return limits[0], limits[1]
+
+
 def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float | None = 2.0,
                    target_state: Sequence[float] | None = None, xlim=(-6.0, 6.0), ylim=(-2.0, 2.0),
                    title: str = "Phase portrait") -> Path:
-    """Fig. 1: (x1, x2) trajectories over the shaded avoided region, x0 and the target marked."""
+    """Fig. 1: (x1, x2) trajectories over the shaded avoided region, x0 and the target marked; the axes
+    span xlim, ylim and every trajectory (`covering_limits`)."""
+    xlim, ylim = covering_limits(traces, xlim, ylim)
     fig, ax = plt.subplots(figsize=(7.5, 4.5), dpi=130)
     if product_bound is not None:
         shade_product_region(ax, product_bound, xlim, ylim)
