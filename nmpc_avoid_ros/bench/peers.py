@@ -74,7 +74,7 @@ class ProblemPieces:
                 raise ConfigError(f"{name} needs {size} values for model {mdl.name}, got {len(getattr(s, name))}")
         self.n, self.m, self.p, self.N = mdl.n, mdl.m, mdl.p, s.horizon
         self.closed_form = s.use_closed_form_steady_state and mdl.steady_state is not None
-        self.f = mdl.discrete(s.sample_time, s.discretization)
+        self.f = mdl.discrete(s.sample_time, s.discretization, s.integration_steps)
         self.slot_layout = SlotLayout(s.max_ellipses, s.max_polygons, s.max_polygon_vertices)
         self.output_frame_available = mdl.p >= 2 and max(s.output_plane) < mdl.p
         xs, us = ca.SX.sym("x", mdl.n), ca.SX.sym("u", mdl.m)

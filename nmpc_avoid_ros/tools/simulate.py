@@ -24,6 +24,7 @@ import numpy as np
 from ..core.config.settings import SOLVER_PATHS, ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
 from ..core.loop.closed_loop import PLANTS, ClosedLoopRun, run_closed_loop
+from ..core.loop.intersample import clearance_between_samples
 from ..core.loop.metrics import max_abs_product, outputs, tracking
 from ..core.loop.scene import Scene, load_scene, obstacle_track
 from ..core.problem.models import Model
@@ -117,8 +118,12 @@ def simulate(scenario: Scenario) -> tuple[ClosedLoopRun, dict[str, Any]]:
     poses, clearance = obstacle_track(scene, run.x, run.u, ts, controller.model, controller.settings)
     run.info["obstacles"] = poses
     known = [c for c in clearance.values() if c is not None]
+    between = clearance_between_samples(controller.settings, controller.model, run.x, run.u, run.regions)
     summary.update({"min_clearance": clearance, "max_penetration": max(0.0, -min(known)) if known else 0.0,
-                    "predict_obstacles": controller.settings.predict_obstacles})
+                    "predict_obstacles": controller.settings.predict_obstacles,
+                    # the continuous motion under each held command, 10 points per sample (core/loop/intersample.py)
+                    "between_samples": {key: between[key] for key in (
+                        "max_penetration_keep_in", "max_penetration_obstacles", "min_clearance_obstacles")}})
     return run, summary
 
 
@@ -181,7 +186,9 @@ def main(argv: list[str] | None = None) -> int:
     mx = f" max|x1x2|={summary['max_abs_x1x2']:.4f}" if "max_abs_x1x2" in summary and not scenario.scene else ""
     if scenario.scene is not None:
         clear = ", ".join(f"{k} {'-' if v is None else format(v, '.4f')}" for k, v in summary["min_clearance"].items())
-        mx = f" predict_obstacles={'on' if summary['predict_obstacles'] else 'off'} min clearance: {clear};"
+        gap = summary["between_samples"]["min_clearance_obstacles"]
+        mx = (f" predict_obstacles={'on' if summary['predict_obstacles'] else 'off'} min clearance: {clear}"
+              f" (between samples {'-' if gap is None else format(gap, '.4f')});")
     print(f"simulate: {summary['steps']} steps, plant={scenario.plant}, mu={scenario.settings.mu:g}, "
           f"solver={scenario.settings.solver}: "
           f"settled at step {summary['settling_step']}{mx} final error {summary['final_error']:.2e} "

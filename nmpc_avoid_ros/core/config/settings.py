@@ -64,6 +64,10 @@ class ControllerSettings:
            "path's worst sample); 0: all in one sample", runtime=True, low=0, high=1000)
     discretization: str = setting("euler", "prediction model discretisation: euler (as in the paper) or rk4",
                                   choices=DISCRETISATIONS)
+    integration_steps: int = setting(
+        1, "sub-steps of the discretisation per sample (h = Ts / steps); the regions are avoided at every "
+           "sub-step state, so also between the samples (docs/design.md, 'Between the samples'); 1 as in the paper",
+        low=1, high=100)
     state_min: tuple[float, ...] = setting((-6.0, -2.0), "lower bounds of the state box of Z (n values)",
                                            high=0.0, finite=False)
     state_max: tuple[float, ...] = setting((6.0, 2.0), "upper bounds of the state box of Z (n values)",

@@ -63,8 +63,8 @@ class ContinuousPlant:
 class DiscretePlant:
     """The prediction model's own discrete map as the plant (what the paper's example simulates)."""
 
-    def __init__(self, model: Model, sample_time: float, method: str = "euler") -> None:
-        self._f = model.discrete(sample_time, method)
+    def __init__(self, model: Model, sample_time: float, method: str = "euler", steps: int = 1) -> None:
+        self._f = model.discrete(sample_time, method, steps)
         self.sample_time = sample_time
 
     def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
@@ -77,7 +77,7 @@ def make_plant(kind: str, model: Model, settings: ControllerSettings) -> Plant:
     """'euler' -> the prediction model's own discrete map (settings' discretisation); 'continuous' ->
     accurate ZOH integration."""
     if kind == "euler":
-        return DiscretePlant(model, settings.sample_time, settings.discretization)
+        return DiscretePlant(model, settings.sample_time, settings.discretization, settings.integration_steps)
     if kind == "continuous":
         return ContinuousPlant(model)
     raise ConfigError(f"plant must be one of {PLANTS}, got {kind!r}")

@@ -9,7 +9,8 @@ everything that depends on it is written per stage with that stage's copy. Per s
     controls u(k) [m], s(k) [n_depth]   (+ s_a [n_depth] at k = 0)     for k < N
     gap      x(k+1) - f(x(k), u(k)) = 0, y(k+1) - y(k) = 0              for k < N
     path     k = 0: x(0) = measured x0; s_a >= depth(x_a, u_a); (x_a, u_a) in lambda Z; hard(x_a/lambda)
-             s(k) >= depth(x(k), u(k)); hard(x(k), u(k)) for k >= 1 (and rows that use u at k = 0)
+             s(k) >= depth(x(k), u(k)) and >= depth at the integration_steps - 1 sub-step states
+             towards x(k+1); hard(x(k), u(k)) for k >= 1 (and rows that use u at k = 0)
              k = N: x(N) = x_a(y(N))                                     (terminal equality)
     cost     k = 0: kappa |y(0) - y_t|^2 + 2 mu |s_a|^2   (x(N) = x_a, so F(x(N)) = F(x_a))
              |x(k) - x_a(y(k))|_Q^2 + |u(k) - u_a(y(k))|_R^2 + mu |s(k)|^2
@@ -31,7 +32,17 @@ import numpy as np
 from ..config.settings import ControllerSettings
 from ..errors import ConfigError
 from ..problem.models import Model, make_model
-from .tracking import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp, check_sizes, depth_function, problem_parts
+from .tracking import (
+    SLACK_REGULARISATION,
+    Buffered,
+    NlpBase,
+    TrackingNlp,
+    between_samples,
+    check_sizes,
+    depth_function,
+    problem_parts,
+    worst_of,
+)
 
 #: iteration budget of a cold start (no previous plan), also in core/sample/controller.py
 COLD_START_ITERATIONS = 200
@@ -95,7 +106,7 @@ class StagewiseNlp(NlpBase):
         self.slot_layout = parts.slot_layout
         self.output_frame_available = parts.output_frame_available
         nd, lam = parts.n_depth, s.steady_state_scale
-        f = mdl.discrete(s.sample_time, s.discretization)
+        path = mdl.discrete_path(s.sample_time, s.discretization, s.integration_steps)
         regularise = SLACK_REGULARISATION
 
         def steady(y):
@@ -136,7 +147,8 @@ class StagewiseNlp(NlpBase):
             ubw += list(s.input_max) + [inf] * nd * (2 if k == 0 else 1)
             offset += n + p + m + nd * (2 if k == 0 else 1)
             # gap-closing constraints first: FATROP's structure detection expects them so
-            g.append(ca.vertcat(X[k + 1] - f(X[k], U[k]), Y[k + 1] - Y[k]))
+            points = path(X[k], U[k])
+            g.append(ca.vertcat(X[k + 1] - points[:, -1], Y[k + 1] - Y[k]))
             lbg += [0.0] * (n + p)
             ubg += [0.0] * (n + p)
             if k == 0:
@@ -160,9 +172,12 @@ class StagewiseNlp(NlpBase):
                 slack_vars.append(s_a)
                 slack_depths.append(depth_a)
             depth = parts.avoidance(X[k], U[k], k * s.sample_time)
-            g.append(S[k] - depth)
-            lbg += [0.0] * nd
-            ubg += [inf] * nd
+            between = between_samples(parts, points, U[k], k * s.sample_time, s.sample_time)
+            for rows in (depth, *between):  # one slack per region bounds g at x(k) and on the way on
+                g.append(S[k] - rows)
+                lbg += [0.0] * nd
+                ubg += [inf] * nd
+            depth = worst_of(depth, between)
             rows = [i for i in range(parts.n_hard) if k > 0 or parts.hard_uses_u[i]]
             if rows:
                 g.append(parts.hard_g(X[k], U[k])[rows])

@@ -9,6 +9,8 @@ Parameter vector (everything that may change between samples without a rebuild):
 Cost:
     V_o + V_a + sum_{j<N} |x(j) - x_a|_Q^2 + |u(j) - u_a|_R^2,
     V_o = kappa |y_a - y_t|^2,  V_a = mu F(x_a) + sum_{j=0..N} mu F(x(j)),  F = sum max(0, g)^2
+    (with integration_steps M > 1, F(x(j)) for j < N takes each region's worst g over x(j) and the
+    M - 1 sub-step states on the way to x(j+1): avoidance between the samples; M = 1 is the paper's)
 Constraints:
     x(j+1) = f(x(j), u(j)); x(N) = x_a; (x(j), u(j)) in Z for j = 1..N-1 (x(0) is measured, not
     decided: only u(0) is bounded at j = 0); (x_a, u_a) in lambda Z; without closed form the
@@ -176,6 +178,22 @@ def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
     return ca.Function("region_depth", [xs, us, parts.par, elapsed], [parts.avoidance(xs, us, elapsed)])
 
 
+def between_samples(parts: ProblemParts, points: ca.SX, u: ca.SX, start: float, sample_time: float) -> list[ca.SX]:
+    """The region functions g [n_depth] at the sub-step states strictly between two samples.
+
+    points [n, M]: Model.discrete_path from x(k) under u(k) (its last column is x(k+1), checked at
+    its own stage); start: the time of x(k) after x(0), s. Empty for M = 1 (the paper)."""
+    steps = points.size2()
+    return [parts.avoidance(points[:, i], u, start + (i + 1) * sample_time / steps) for i in range(steps - 1)]
+
+
+def worst_of(depth: ca.SX, between: list[ca.SX]) -> ca.SX:
+    """Elementwise max of a stage's g at x(k) and at its sub-step states: the value its slack takes."""
+    for extra in between:
+        depth = ca.fmax(depth, extra)
+    return depth
+
+
 class NlpBase:
     """What the controller needs from any formulation (multiple shooting or stage-wise).
 
@@ -322,21 +340,24 @@ class TrackingNlp(NlpBase):
             x_a, u_a = ca.SX.sym("x_a", n), ca.SX.sym("u_a", m)
             w = ca.vertcat(ca.vec(U), ca.vec(X), y_a, x_a, u_a)
 
-        f = mdl.discrete(s.sample_time, s.discretization)
+        path = mdl.discrete_path(s.sample_time, s.discretization, s.integration_steps)
 
         states = [x0] + [X[:, j] for j in range(N)]
         g, lbg, ubg = [], [], []
         tracking = 0
         ts = s.sample_time
         depth = [avoidance(x_a, u_a, N * ts)]  # x_a = x(N): moving obstacles where they are at t_N
+        between = [[]]  # per depth block: g at the sub-step states its slack also bounds
         for j in range(N):
-            g.append(states[j + 1] - f(states[j], U[:, j]))
+            points = path(states[j], U[:, j])
+            g.append(states[j + 1] - points[:, -1])
             lbg += [0.0] * n
             ubg += [0.0] * n
             dx = states[j] - x_a
             du = U[:, j] - u_a
             tracking += ca.dot(q * dx, dx) + ca.dot(r * du, du)
             depth.append(avoidance(states[j], U[:, j], j * ts))
+            between.append(between_samples(parts, points, U[:, j], j * ts, ts))
             if hard:
                 rows = [i for i in hard if j > 0 or hard_uses_u[i]]
                 if rows:
@@ -344,14 +365,19 @@ class TrackingNlp(NlpBase):
                     lbg += [-np.inf] * len(rows)
                     ubg += [0.0] * len(rows)
         depth.append(avoidance(states[N], u_a, N * ts))
+        between.append([])
         # F = max(0, g)^2 is only C1, which costs IPOPT many iterations near region boundaries.
         # The smooth equivalent: slacks s >= 0, s >= g, cost s^2 (at the optimum s = max(0, g)).
-        depth = ca.vertcat(*depth)
-        slack = ca.SX.sym("slack", depth.numel())
+        # Between samples a stage's slack also bounds g at its sub-step states: s = the worst of them.
+        nd = parts.n_depth
+        slack = ca.SX.sym("slack", len(depth) * nd)
         w = ca.vertcat(w, slack)
-        g.append(slack - depth)
-        lbg += [0.0] * depth.numel()
-        ubg += [np.inf] * depth.numel()
+        for block, (at_sample, extras) in enumerate(zip(depth, between)):
+            for rows in (at_sample, *extras):
+                g.append(slack[block * nd:(block + 1) * nd] - rows)
+                lbg += [0.0] * nd
+                ubg += [np.inf] * nd
+        depth = ca.vertcat(*[worst_of(d, e) for d, e in zip(depth, between)])
         # terminal equality x(N) = x_a (eq. 20h)
         g.append(states[N] - x_a)
         lbg += [0.0] * n

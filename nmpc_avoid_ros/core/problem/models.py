@@ -58,24 +58,38 @@ class Model:
     def p(self) -> int:
         return len(self.output_names)
 
-    def discrete(self, sample_time: float, method: str = "euler") -> ca.Function:
-        """Discrete map (x[n], u[m]) -> x(k+1)[n] over one sample of `sample_time` s."""
+    def discrete(self, sample_time: float, method: str = "euler", steps: int = 1) -> ca.Function:
+        """Discrete map (x[n], u[m]) -> x(k+1)[n] over one sample of `sample_time` s, in `steps`
+        sub-steps of `method` (h = sample_time / steps)."""
+        x, u = ca.SX.sym("x", self.n), ca.SX.sym("u", self.m)
+        path = self.discrete_path(sample_time, method, steps)(x, u)
+        return ca.Function(f"{self.name}_{method}", [x, u], [path[:, -1]], ["x", "u"], ["x_next"])
+
+    def discrete_path(self, sample_time: float, method: str = "euler", steps: int = 1) -> ca.Function:
+        """(x[n], u[m]) -> the sub-step states [n, steps] at times j h, j = 1..steps (h = sample_time /
+        steps, input held): the last column is x(k+1); the others are where the prediction says the
+        plant passes between two samples (the regions are avoided there too, core/nlp/tracking.py)."""
         if method not in DISCRETISATIONS:
             raise ConfigError(f"discretization must be one of {DISCRETISATIONS}, got {method!r}")
         if not (np.isfinite(sample_time) and sample_time > 0):
             raise ConfigError(f"sample_time must be a positive number of seconds, got {sample_time}")
+        if int(steps) != steps or steps < 1:
+            raise ConfigError(f"integration_steps must be a whole number >= 1, got {steps}")
         x = ca.SX.sym("x", self.n)
         u = ca.SX.sym("u", self.m)
-        f = self.dynamics
-        if method == "euler":
-            x_next = x + sample_time * f(x, u)
-        else:
-            k1 = f(x, u)
-            k2 = f(x + sample_time / 2 * k1, u)
-            k3 = f(x + sample_time / 2 * k2, u)
-            k4 = f(x + sample_time * k3, u)
-            x_next = x + sample_time / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        return ca.Function(f"{self.name}_{method}", [x, u], [x_next], ["x", "u"], ["x_next"])
+        f, h = self.dynamics, sample_time / int(steps)
+        points, state = [], x
+        for _ in range(int(steps)):
+            if method == "euler":
+                state = state + h * f(state, u)
+            else:
+                k1 = f(state, u)
+                k2 = f(state + h / 2 * k1, u)
+                k3 = f(state + h / 2 * k2, u)
+                k4 = f(state + h * k3, u)
+                state = state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            points.append(state)
+        return ca.Function(f"{self.name}_{method}_path", [x, u], [ca.horzcat(*points)], ["x", "u"], ["points"])
 
     def symbol_table(self, x: ca.SX | ca.MX, u: ca.SX | ca.MX) -> dict[str, ca.SX | ca.MX]:
         """Names -> symbolic entries of x, u and y = h(x, u), for algebraic region expressions."""

@@ -102,18 +102,22 @@ class FallbackSelector:
         H = self.horizon = settings.horizon
         n, m = model.n, model.m
         parts = problem_parts(settings, model)
-        f = model.discrete(settings.sample_time, settings.discretization)
+        path = model.discrete_path(settings.sample_time, settings.discretization, settings.integration_steps)
         x0, par = ca.SX.sym("x0", n), ca.SX.sym("p", parts.par.numel())
         U = ca.SX.sym("U", m, H)
         depth = nlp.region_depth
         x_lo, x_hi = np.array(settings.state_min, float), np.array(settings.state_max, float)
         states, excess = [x0], []
         x = x0
+        ts, steps = settings.sample_time, settings.integration_steps
         for k in range(H):
-            x = f(x, U[:, k])
+            points = path(x, U[:, k])
+            # the regions also between the samples, at the sub-step states (none for 1 step)
+            terms = [depth(points[:, i], U[:, k], par, (k + (i + 1) / steps) * ts) for i in range(steps - 1)]
+            x = points[:, -1]
             states.append(x)
             u_next = U[:, min(k + 1, H - 1)]
-            terms = [depth(x, u_next, par, (k + 1) * settings.sample_time), x - x_hi, x_lo - x]
+            terms += [depth(x, u_next, par, (k + 1) * ts), x - x_hi, x_lo - x]
             if parts.n_hard:
                 terms.append(parts.hard_g(x, u_next))
             excess.append(ca.vertcat(*terms))

@@ -1,0 +1,70 @@
+"""Clearance between the samples: the plant's continuous motion under each held command, checked densely.
+
+A sampled-data loop can satisfy every constraint at the samples and still cut through a region
+between them (a chord across an obstacle's edge, or a fast state stepping over a small one). The
+check here integrates the continuous model from each recorded state x(k) under its command u(k)
+over one sample and evaluates the regions at `per_sample` evenly spaced times (the samples
+included), with moving regions where they are at each of those times.
+
+The integration is RK4 with SUBSTEPS steps per checked point, in one CasADi map over all
+samples: for the shipped models (Ts = 0.25-0.5 s, 10 points per sample) its error is far below
+the 1e-3 of a clearance bound, and a 100-sample run takes milliseconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ..config.settings import ControllerSettings
+from ..problem.models import Model
+from ..problem.regions import Region
+from .metrics import penetration
+
+#: RK4 steps per checked point
+SUBSTEPS = 8
+#: checked points per sample (the goal of issue 22: 10x the sample rate)
+POINTS_PER_SAMPLE = 10
+
+
+def dense_states(model: Model, x: np.ndarray, u: np.ndarray, sample_time: float,
+                 per_sample: int = POINTS_PER_SAMPLE) -> np.ndarray:
+    """States at t_k + j Ts / per_sample, j = 0..per_sample - 1, for every sample k < K, and x(K).
+
+    x [K+1, n] (or [K, n]: then no final state is appended), u [K, m] -> [K per_sample (+1), n]; each
+    sample starts from its recorded x(k), so a model mismatch does not accumulate across samples.
+    """
+    x, u = np.atleast_2d(np.asarray(x, float)), np.atleast_2d(np.asarray(u, float))
+    K = len(u)
+    path = model.discrete_path(sample_time, "rk4", per_sample * SUBSTEPS).map(K)
+    points = np.asarray(path(x[:K].T, u.T), float)  # [n, K * per_sample * SUBSTEPS]
+    points = points.reshape(model.n, K, per_sample * SUBSTEPS)[:, :, SUBSTEPS - 1::SUBSTEPS]  # j = 1..per
+    # sample k's points: x(k) then its first per_sample - 1 checked points
+    within = np.concatenate([x[:K].T[:, :, None], points[:, :, :-1]], axis=2)  # [n, K, per_sample]
+    dense = within.transpose(1, 2, 0).reshape(K * per_sample, model.n)
+    return np.vstack([dense, x[K:K + 1]]) if len(x) > K else dense
+
+
+def clearance_between_samples(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
+                    regions: Sequence[Sequence[Region]], times: Sequence[float] | None = None,
+                    per_sample: int = POINTS_PER_SAMPLE) -> dict[str, Any]:
+    """Penetration and clearance (core/loop/metrics.py `penetration`, same keys) over the dense states.
+
+    x [K+1, n] states the samples solved on (+ final), u [K, m] commands, regions [K] the set in force
+    at each sample, times [K] the sample times (s; default k Ts) for moving regions, which are moved to
+    each checked point's time (`Region.at`).
+    """
+    K = len(u)
+    ts = settings.sample_time
+    dense = dense_states(model, x, u, ts, per_sample)
+    t0 = np.arange(K) * ts if times is None else np.asarray(times, float)
+    held = np.repeat(np.atleast_2d(np.asarray(u, float)), per_sample, axis=0)
+    dense_regions: list[tuple[Region, ...]] = []
+    for k in range(len(dense)):
+        sample = min(k // per_sample, K - 1)
+        in_force = regions[min(sample, len(regions) - 1)] if len(regions) else ()
+        t = t0[sample] + (k - sample * per_sample) * ts / per_sample
+        dense_regions.append(tuple(r.at(t) if r.moving else r for r in in_force))
+    return penetration(settings, model, dense, held, dense_regions)
