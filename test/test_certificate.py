@@ -76,7 +76,13 @@ def test_parameter_change_is_not_checked_and_no_plan_is_skipped():
     certificate.observe(result, TARGET)
     x = result.states[1]
     moved = certificate.observe(controller.step(x, np.array([3.0])), np.array([3.0]))
-    assert not moved.checked and "parameters changed" in moved.reason and math.isnan(moved.margin)
+    assert not moved.checked and math.isnan(moved.margin)
+    assert moved.reason == "parameters changed (target): check restarted"
+    again = certificate.observe(controller.step(x, np.array([3.0])), np.array([3.0]))
+    assert again.checked  # unchanged parameters from here: the check runs again
+    controller.update_settings(region_margin=0.1)
+    margin = certificate.observe(controller.step(x, np.array([3.0])), np.array([3.0]))
+    assert margin.reason == "parameters changed (obstacle settings): check restarted"
     skipped = certificate.skip("no new state")
     assert not skipped.checked and skipped.reason == "no new state"
 
@@ -116,3 +122,23 @@ def test_a_moving_region_keeps_the_certificate_checked_and_met_on_the_nominal_mo
     jumped = run_closed_loop(NmpcController(ControllerSettings()), [-5.0, 0.0], TARGET, 6, "euler",
                              regions=lambda k: [moving if k < 3 else dataclasses.replace(moving, center=(-1.0, 0.5))])
     assert [c["checked"] for c in jumped.certificate] == [False, True, True, False, True, True]
+
+
+def test_the_live_config_meets_the_certificate_through_a_target_change_on_the_continuous_plant():
+    """config/van_der_pol_live.yaml predicts the continuous plant closely (RK4, 8 sub-steps): targets 5
+    then -3 give no violation, the change restarts the check, and the measured mismatch stays tiny.
+    The paper's Euler config on the same plant breaks it (test_model_mismatch_... above)."""
+    from pathlib import Path
+
+    from nmpc_avoid_ros.core.config.settings import load_params_file
+    from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+
+    live = Path(__file__).resolve().parents[1] / "config" / "van_der_pol_live.yaml"
+    settings = ControllerSettings.from_params(load_params_file(live).section("controller"))
+    controller = NmpcController(settings.replace(codegen=False, max_solve_time=2.0))
+    run = run_closed_loop(controller, [-5.0, 0.0], lambda k: [5.0] if k < 30 else [-3.0], 60, "continuous")
+    assert violations(run) == 0
+    reasons = [c["reason"] for c in run.certificate]
+    assert reasons[30] == "parameters changed (target): check restarted"
+    assert reasons.count("") == 58
+    assert max(c["model_mismatch"] for c in run.certificate[1:]) < 1e-4

@@ -132,11 +132,21 @@ def same_trajectory(a: Region, b: Region, time: float | None) -> bool:
     return bool(np.allclose(fa, fb, rtol=POSE_TOLERANCE, atol=POSE_TOLERANCE))
 
 
-def previous_key_matches(previous: tuple, key: tuple, time: float | None) -> bool:
-    """Assumption P between two samples: equal parameters (but x(0) and the slots), equal prediction
-    switch, and the same regions (`same_trajectory`, in order)."""
-    return (np.array_equal(previous[0], key[0]) and previous[2] == key[2] and len(previous[1]) == len(key[1])
-            and all(same_trajectory(a, b, time) for a, b in zip(previous[1], key[1])))
+def what_changed(previous: tuple, key: tuple, time: float | None, target_size: int) -> str:
+    """'' when Assumption P holds between two samples, else what changed ('target', 'regions', ...).
+
+    key = (parameters but x(0) and the slots: y_t [target_size] first, then the weights; the regions;
+    the prediction switch; region_margin). Equal regions are `same_trajectory`, in order."""
+    changes = []
+    if not np.array_equal(previous[0][:target_size], key[0][:target_size]):
+        changes.append("target")
+    if len(previous[1]) != len(key[1]) or not all(same_trajectory(a, b, time) for a, b in zip(previous[1], key[1])):
+        changes.append("regions")
+    if not np.array_equal(previous[0][target_size:], key[0][target_size:]):
+        changes.append("weights")
+    if previous[2:] != key[2:]:
+        changes.append("obstacle settings")
+    return ", ".join(changes)
 
 
 @dataclass
@@ -183,9 +193,10 @@ class StabilityCertificate:
         # what must stay equal (Assumption P): the parameters but x(0) and the slots' time-dependent
         # packing, and the regions themselves (a moving one is the same trajectory while its
         # stamp and velocity are)
+        s = self.controller.settings
         key = (par[n:par.size - self.controller.nlp.slot_layout.size].copy(), self.controller.regions,
-               self.controller.settings.predict_obstacles)
-        unchanged = previous_key_matches(self._previous.key, key, time) if self._previous is not None else False
+               s.predict_obstacles, s.region_margin)
+        changed = what_changed(self._previous.key, key, time, len(y_t)) if self._previous is not None else ""
         previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:
             return self._unchecked(value, source, "first sample")
@@ -194,8 +205,9 @@ class StabilityCertificate:
         if plan.inputs.shape[0] != N:
             return self._unchecked(value, source, f"horizon switched ({plan.inputs.shape[0]} -> {N}, passage mode)",
                                    mismatch)
-        if not unchanged:
-            return self._unchecked(value, source, "parameters changed (target, regions or weights)", mismatch)
+        if changed:
+            # the decrease holds under unchanged parameters only: the check restarts from here
+            return self._unchecked(value, source, f"parameters changed ({changed}): check restarted", mismatch)
         # the previous plan shifted (u(1..N-1), u_a; x(2..N), x_a), started at its own x(1) (the
         # nominal successor) and costed with this sample's parameters (moving regions at this
         # sample's stage times)
@@ -208,7 +220,6 @@ class StabilityCertificate:
         if not math.isfinite(value) or not math.isfinite(bound):
             return self._unchecked(value, source, "cost not finite", mismatch)
         decrease = value - previous.value
-        s = self.controller.settings
         tolerance = s.certificate_tolerance * s.tolerance * max(1.0, abs(previous.value))
         violated = decrease > bound + tolerance
         self.consecutive = self.consecutive + 1 if violated else 0
