@@ -61,6 +61,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ..core.config.settings import NODE_SETTINGS, SETTINGS, NodeSettings
 from ..core.errors import ConfigError, InputError, NmpcError, RegionError
+from ..core.loop.alarm import AvoidanceCheck
 from ..core.loop.certificate import CertificateSample, StabilityCertificate
 from ..core.sample.controller import NmpcController
 from ..core.sample.step_result import StepResult
@@ -163,6 +164,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         self.lockstep = self.options.lockstep  # read-only: fixed for the node's life
         self.certificate = StabilityCertificate(controller)
         self.last_certificate: CertificateSample | None = None
+        self.avoidance, self.last_alarm = AvoidanceCheck(controller), None  # inside a region, or planned to be
         self.reset_loop()
         self.last_result: StepResult | None = None
         self.last_command = np.zeros(self.m)
@@ -444,6 +446,9 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
             level = DiagnosticStatus.ERROR
             message = f"{result.status}: {result.fallback_reason}"
             self.get_logger().error(message, throttle_duration_sec=self.options.log_throttle)
+        self.last_alarm = alarm = self.avoidance.check(result, self.state_time)
+        if alarm.message:  # never a plain ok while inside a region or planning to enter one
+            level, message = max(level, DiagnosticStatus.WARN), f"{message}; {alarm.message}"
         try:
             certificate = self.certificate.observe(result, self.target, self.state_time)
         except RegionError as exc:
@@ -481,7 +486,9 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                   "stale_for_s": f"{0.0 if self.stale_since is None else self.now() - self.stale_since:.3f}",
                   "last_stale_s": f"{self.last_stale:.3f}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
-                  "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected}
+                  "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected,
+                  **({"state_depth": f"{a.state_depth:.6g}", "plan_depth": f"{a.plan_depth:.6g}"}
+                     if (a := self.last_alarm) else {})}
         msg = diagnostic_array(self.get_fully_qualified_name(), self.get_clock().now().to_msg(), level, message,
                                values, result, latency, self.state_time, self.last_certificate)
         self.pub_diagnostics.publish(msg)

@@ -47,24 +47,33 @@ def dense_states(model: Model, x: np.ndarray, u: np.ndarray, sample_time: float,
     return np.vstack([dense, x[K:K + 1]]) if len(x) > K else dense
 
 
-def clearance_between_samples(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
-                    regions: Sequence[Sequence[Region]], times: Sequence[float] | None = None,
-                    per_sample: int = POINTS_PER_SAMPLE) -> dict[str, Any]:
-    """Penetration and clearance (core/loop/metrics.py `penetration`, same keys) over the dense states.
+def dense_run(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
+              regions: Sequence[Sequence[Region]], times: Sequence[float] | None = None,
+              per_sample: int = POINTS_PER_SAMPLE) -> tuple[np.ndarray, np.ndarray, list[tuple[Region, ...]]]:
+    """The dense states [K per_sample + 1, n] (`dense_states`), the command held at each [same rows, m], and
+    the regions in force at each, moving ones moved to the point's time (`Region.at`).
 
     x [K+1, n] states the samples solved on (+ final), u [K, m] commands, regions [K] the set in force
-    at each sample, times [K] the sample times (s; default k Ts) for moving regions, which are moved to
-    each checked point's time (`Region.at`).
-    """
+    at each sample, times [K] the sample times (s; default k Ts)."""
     K = len(u)
     ts = settings.sample_time
     dense = dense_states(model, x, u, ts, per_sample)
     t0 = np.arange(K) * ts if times is None else np.asarray(times, float)
     held = np.repeat(np.atleast_2d(np.asarray(u, float)), per_sample, axis=0)
+    held = np.vstack([held, held[-1:]])[:len(dense)]
     dense_regions: list[tuple[Region, ...]] = []
     for k in range(len(dense)):
         sample = min(k // per_sample, K - 1)
         in_force = regions[min(sample, len(regions) - 1)] if len(regions) else ()
         t = t0[sample] + (k - sample * per_sample) * ts / per_sample
         dense_regions.append(tuple(r.at(t) if r.moving else r for r in in_force))
+    return dense, held, dense_regions
+
+
+def clearance_between_samples(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
+                              regions: Sequence[Sequence[Region]], times: Sequence[float] | None = None,
+                              per_sample: int = POINTS_PER_SAMPLE) -> dict[str, Any]:
+    """Penetration and clearance (core/loop/metrics.py `penetration`, same keys) over the dense states
+    of `dense_run` (same arguments)."""
+    dense, held, dense_regions = dense_run(settings, model, x, u, regions, times, per_sample)
     return penetration(settings, model, dense, held, dense_regions)

@@ -116,9 +116,8 @@ class NmpcController:
         Counted where each is built (`solver_builds` of NlpBase and FallbackSelector): the solver
         path's own, a fast path's copy with the cold-start budget, the fast paths' cold-start
         reference (IPOPT), the fallback's recovery solve, the passage mode's long NLP and the target
-        projection (core/nlp/projection.py). All are
-        built in the constructor: nothing at run time (a target, obstacles, mu, the weights, entering
-        or leaving the passage mode) adds to it.
+        projection (core/nlp/projection.py). All are built in the constructor: nothing at run time (a
+        target, obstacles, mu, the weights, entering or leaving the passage mode) adds to it.
         """
         parts = (self.nlp, self.cold_nlp, self.fallback, self.passage, self.tiered, self.project_target)
         return sum(part.solver_builds for part in parts if part is not None)
@@ -151,15 +150,16 @@ class NmpcController:
         self._moving = any(r.moving for r in self._regions)
 
     def slot_values(self, time: float | None = None) -> np.ndarray:
-        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s).
-
-        With `predict_obstacles` on, moving regions are placed where they are at `time` and
-        predicted stage by stage (time None: each pose counts as valid at x(0)); off, every region
-        stays where it was at its stamp. Static regions only: the slots packed once per region set.
-        """
+        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s): with `predict_obstacles`
+        on, moving regions placed where they are then and predicted stage by stage (time None: each pose valid
+        at x(0)); off, each stays where it was at its stamp. Static regions only: the slots packed once per set."""
         if self._moving and self.settings.predict_obstacles:
             return self.nlp.slot_layout.pack(list(self._regions), self.nlp.output_frame_available, time)
         return self._slots
+
+    @property
+    def keep_in_active(self) -> np.ndarray:
+        return self._keep_in_active  # one flag per keep_in entry (1: penalised), see set_keep_in_active
 
     def set_keep_in_active(self, active: Sequence[bool]) -> None:
         """Switch the configured algebraic regions on or off (one flag per `keep_in` entry)."""

@@ -40,6 +40,7 @@ import numpy as np
 from ...core.config.settings import ControllerSettings
 from ...core.errors import NmpcError
 from ...core.loop.closed_loop import ClosedLoopRun, run_closed_loop
+from ...core.loop.intersample import POINTS_PER_SAMPLE, dense_run
 from ...core.loop.metrics import (
     SETTLING_TOLERANCE,
     keep_in_values,
@@ -233,8 +234,15 @@ def robustness_section(s: Scored) -> dict[str, Any]:
         g = np.maximum(g, keep.max(axis=1))
     after_fallback = [float(np.max(g[k + 1:k + 1 + s.settings.horizon]))
                       for k, st in enumerate(run.status) if StepStatus(st).is_fallback]
+    # the same from the continuous motion under each held command (core/loop/intersample.py)
+    dense, held, dense_regions = dense_run(s.settings, s.model, run.x, run.u, run.regions)
+    dense_g = region_values(s.settings, dense, outputs(s.model, dense, held), dense_regions)
+    if keep.size:
+        dense_g = np.maximum(dense_g, keep_in_values(s.settings, s.model, dense, held).max(axis=1))
     return {
         "penetration_after_first_step": max(0.0, float(np.max(g[FIRST_ACTED_SAMPLE:], initial=-math.inf))),
+        "penetration_after_first_step_between": max(0.0, float(np.max(dense_g[FIRST_ACTED_SAMPLE * POINTS_PER_SAMPLE:],
+                                                                      initial=-math.inf))),
         "fallback_penetration": max([0.0, *after_fallback]),
         # the first sample's least-violating input still predicts a violation: a region cannot be
         # avoided from x0 although x0 is in X_N (whose constraints are the hard ones alone)

@@ -92,6 +92,10 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "runs_unavoidable_at_start": sum(r.get("unavoidable_at_start", False) for r in feasible_start),
         "penetration_after_first_step_avoidable_start": _max([r["penetration_after_first_step"] for r in feasible_start
                                                              if not r.get("unavoidable_at_start", False)]),
+        # between the samples too (core/loop/intersample.py; absent from campaigns scored before it)
+        "penetration_after_first_step_between_avoidable_start": _max([
+            r["penetration_after_first_step_between"] for r in feasible_start
+            if not r.get("unavoidable_at_start", False) and "penetration_after_first_step_between" in r]),
         "fallback_penetration": _max([r["fallback_penetration"] for r in finished]),
         "fallback_penetration_avoidable_start": _max([r["fallback_penetration"] for r in feasible_start
                                                      if not r.get("unavoidable_at_start", False)]),
