@@ -97,6 +97,11 @@ def test_analyze_of_the_paper_bags_matches_simulate(demo_out, shipped_paper, tmp
     for name in RUNS:
         m = metrics[f"{name}.mcap"]
         assert m["certificate_violations"] == 0 and m["certificate_checked"] >= 49
+        # the dense check holds the samples themselves, so it sees at least what they show
+        assert m["between_samples"]["max_penetration"] >= m["max_penetration"] - 1e-12
+    # the honest status: the run without avoidance plans through |x1 x2| > 2 and says so
+    assert metrics["with_avoidance.mcap"]["alarm_samples"] == 0
+    assert metrics["without_avoidance.mcap"]["alarm_samples"] >= 5
     assert (tmp_path / "phase_portrait.png").stat().st_size > 10_000
     assert (tmp_path / "value_function.png").stat().st_size > 10_000
 

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 
 from ..core.config.settings import ControllerSettings
+from ..core.loop.alarm import ALARM_DEPTH
+from ..core.loop.intersample import clearance_between_samples
 from ..core.loop.metrics import max_abs_product, outputs, penetration, region_values, time_stats, tracking
 from ..core.problem.models import make_model
 from ..core.problem.regions import Region
@@ -57,6 +59,9 @@ class RecordedRun:
     parameters: dict[str, np.ndarray] = field(default_factory=dict)
     #: the plan's cost terms per sample (COST_KEYS -> [K], 6 significant digits as the diagnostics carry them)
     costs: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the honest status's depths per sample (core/loop/alarm.py: state_depth, plan_depth -> [K]); empty for
+    #: bags of controllers without it
+    depths: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -184,6 +189,8 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         parameters={key: np.array([float(v[key]) for _, v in samples]) for key in RECORDED_PARAMETERS
                     if all(key in v for _, v in samples)},
         costs={key: np.array([float(v.get(key, "nan")) for _, v in samples]) for key in COST_KEYS},
+        depths={key: np.array([float(v[key]) for _, v in samples]) for key in ("state_depth", "plan_depth")
+                if all(key in v for _, v in samples)},
     )
 
 
@@ -203,6 +210,13 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
     for key in ("max_penetration", "min_clearance", "max_penetration_keep_in", "max_penetration_obstacles",
                 "min_clearance_obstacles"):
         metrics[key] = pen[key]
+    # the continuous motion under each recorded command, 10 points per sample (core/loop/intersample.py)
+    between = clearance_between_samples(settings, model, xs, run.u, run.regions, run.times)
+    metrics["between_samples"] = {key: between[key] for key in ("max_penetration", "min_clearance",
+                                                                 "min_clearance_obstacles")}
+    # samples the controller itself reported inside a region or planning to enter one (WARN)
+    metrics["alarm_samples"] = (int(np.sum((run.depths["state_depth"] > ALARM_DEPTH)
+                                           | (run.depths["plan_depth"] > ALARM_DEPTH))) if run.depths else None)
     if model.n >= 2:
         metrics["max_abs_x1x2"] = max_abs_product(xs)
     metrics["solve_ms"] = time_stats(run.solve_ms)
