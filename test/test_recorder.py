@@ -592,3 +592,86 @@ def test_settle_spins_until_the_recorder_holds_what_was_heard_and_names_what_is_
     assert settle(spin_once, {"/state": 5}, recorded, timeout=10.0) < 10.0 and recorded == {"/state": 5}
     with pytest.raises(NmpcError, match=r"in 0.05 s: it holds /command 0 of 1$"):
         settle(lambda: None, {"/state": 5, "/command": 1}, recorded, timeout=0.05)
+
+
+@pytest.mark.dds
+def test_sigint_ends_the_recorder_within_a_second_while_publishers_go_on_and_loses_nothing(ros_graph, recorder,
+                                                                                             tmp_path):
+    """The exit took 4-7 s: it drained until the queues had been idle for 0.2 s, at most 5 s, and a
+    plant publishing at 20 Hz never lets them idle. Now it records what DDS received until
+    SIGNAL_GRACE s after the signal (what was in flight at it) and finishes the file."""
+    _domain, _env, _start, probe = ros_graph
+    p = probe()
+    state = p.node.create_publisher(Float64MultiArray, "state", STREAM_QOS)
+    clock = p.node.create_publisher(Clock, "/clock", STREAM_QOS)
+    recorded = recorder_counts(p.node)
+    out = tmp_path / "sigint.mcap"
+    rec = recorder("-p", f"output:={out}")
+    wait_matched(p, [state, clock])
+    sent = 0
+
+    def publish() -> None:
+        nonlocal sent
+        state.publish(floats(sent))
+        clock.publish(Clock(clock=TimeMsg(sec=sent)))
+        sent += 1
+
+    rate = 50.0  # Hz per topic: faster than the plant's 20 Hz
+    for _ in range(int(rate)):
+        publish()
+        p.spin_for(1.0 / rate)
+    assert p.spin_until(lambda: recorded.get("/state", 0) > 0, 10.0), rec.output()
+    for _ in range(80):  # a burst (within the writers' history, STREAM depth 100): queued as the signal comes
+        publish()
+    before = sent
+    signalled = time.monotonic()
+    rec.send(signal.SIGINT)
+    while rec.alive() and time.monotonic() - signalled < 10.0:  # the publishers go on
+        publish()
+        time.sleep(1.0 / rate)
+    exit_s = time.monotonic() - signalled
+    assert rec.proc.wait(5) == 0, rec.output()
+    print(f"the recorder exited {exit_s * 1e3:.0f} ms after SIGINT ({sent - before} messages per topic "
+          "published meanwhile)")
+    assert exit_s < 1.0, rec.output()
+    bag = load_bag(out)
+    assert bag.finished
+    for topic, value in (("/state", lambda m: m.data[0]), ("/clock", lambda m: m.clock.sec)):
+        values = [value(m) for _, m in bag.topics[topic]]
+        # everything published before the signal (received within the grace on localhost), gap-free
+        assert values == list(range(len(values))) and len(values) >= before, (topic, len(values), before)
+    with AnyReader([out]) as reader:  # complete for an independent reader too
+        assert {c.topic: c.msgcount for c in reader.connections} == bag.counts()
+
+
+@pytest.mark.dds
+def test_the_parameters_of_each_publishing_node_go_into_the_bag(ros_graph, recorder, tmp_path):
+    from rclpy.parameter import Parameter
+
+    from nmpc_avoid_ros.bag.node_parameters import node_parameters
+
+    _domain, _env, _start, probe = ros_graph
+    p = probe("plant_like")
+    values = {"integration": "rk4", "sample_time": 0.25, "initial_state": [1.0, -2.0], "lockstep": True}
+    p.node.declare_parameters("", [(k, v) for k, v in values.items()])
+    p.node.declare_parameter("unset", Parameter.Type.STRING)  # declared, never set: left out
+    pub = p.node.create_publisher(Float64MultiArray, "state", STREAM_QOS)
+    quiet = probe("listener")  # publishes nothing recorded: not asked
+    quiet.node.declare_parameter("secret", 1)
+    recorded = recorder_counts(p.node)
+    out = tmp_path / "split"
+    rec = recorder("-p", f"output:={out}", "-p", "chunk_size:=1000", "-p", "split_size:=2000")
+    wait_matched(p, [pub])
+    assert p.spin_until(lambda: "parameters:/plant_like" in recorded, 30.0), (recorded, rec.output())
+    for i in range(200):  # several split files: each holds the record
+        pub.publish(floats(*range(i, i + 8)))
+        p.spin_for(0.002)
+        quiet.spin_for(0.0)
+    p.spin_for(0.5)
+    assert rec.stop() == 0, rec.output()
+    files = sorted(out.glob("*.mcap"))
+    assert len(files) >= 2
+    for path in [out, *files]:
+        nodes, notes = node_parameters(load_bag(path))
+        assert notes == [] and set(nodes) == {"/plant_like"}, (path, nodes)
+        assert nodes["/plant_like"] == {**values, "use_sim_time": False, "start_type_description_service": True}

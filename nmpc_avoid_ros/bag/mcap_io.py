@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Footer, Header, Message, Schema, Statistics
+from mcap.records import Channel, Chunk, Footer, Header, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from ..core.errors import NmpcError
@@ -121,7 +121,9 @@ def _check_file(path: Path) -> FileReport:
 class BagReader:
     """Iterates the messages of a bag (a .mcap file, or a directory of numbered .mcap files) in file
     order. The files are checked when the reader is made (BagError at once for a non-MCAP file);
-    `finished` is known then, the per-file `reports` (chunks kept, damaged chunks) after iterating.
+    `finished` is known then; the per-file `reports` (chunks kept, damaged chunks) and the MCAP
+    metadata records (`metadata`: (name, {key: value}) in file order, a record repeated in a later
+    split file kept once) after iterating.
     """
 
     def __init__(self, path: str | os.PathLike, topics: Iterable[str] | None = None, *, decode: bool = True) -> None:
@@ -130,6 +132,7 @@ class BagReader:
         self.decode = decode
         self.reports = [_check_file(p) for p in _bag_files(self.path)]
         self.types: dict[str, str] = {}
+        self.metadata: list[tuple[str, dict[str, str]]] = []
 
     @property
     def finished(self) -> bool:
@@ -194,6 +197,10 @@ class BagReader:
                     self.types.setdefault(record.topic, schema.name)
             elif isinstance(record, Message):
                 return emit(record)
+            elif isinstance(record, Metadata):
+                entry = (str(record.name), {str(k): str(v) for k, v in dict(record.metadata).items()})
+                if entry not in self.metadata:
+                    self.metadata.append(entry)
             return None
 
         try:
@@ -270,13 +277,15 @@ def read_bag(path: str | os.PathLike, topics: Iterable[str] | None = None, *, de
 
 @dataclass
 class Bag:
-    """A bag in memory: per topic, the (log_time_ns, message) pairs sorted by log time."""
+    """A bag in memory: per topic, the (log_time_ns, message) pairs sorted by log time; the MCAP
+    metadata records (name, {key: value}), e.g. the nodes' parameters (bag/node_parameters.py)."""
 
     path: Path
     topics: dict[str, list[tuple[int, Any]]]
     types: dict[str, str]
     finished: bool
     files: list[FileReport]
+    metadata: list[tuple[str, dict[str, str]]] = field(default_factory=list)
 
     @property
     def message_count(self) -> int:
@@ -322,4 +331,4 @@ def load_bag(path: str | os.PathLike, topics: Iterable[str] | None = None, *, de
     for items in per_topic.values():
         items.sort(key=lambda item: item[0])
     types = {t: n for t, n in reader.types.items() if t in per_topic}
-    return Bag(Path(path), per_topic, types, reader.finished, reader.reports)
+    return Bag(Path(path), per_topic, types, reader.finished, reader.reports, reader.metadata)

@@ -185,6 +185,11 @@ class Ros2McapWriter:
             self.add_topic(topic, type_name)
         self.write(topic, serialize_message(msg), log_time_ns, publish_time_ns)
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Write an MCAP metadata record (`name`, string keys -> string values) at once, outside the chunks:
+        it is in the kernel when this returns, so an unfinished file keeps it too."""
+        self._guard(lambda: self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()}))
+
     def flush(self) -> None:
         """Close the chunk being filled and hand it to the kernel (it then survives a crash)."""
         self._guard(self._writer.flush)

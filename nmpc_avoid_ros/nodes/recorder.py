@@ -16,11 +16,18 @@ offers that, so that every publisher matches.
 `output`: a .mcap path, or a directory (then rosbag2 naming ``<dir>/<dir>_0.mcap``). With
 `split_size` or `split_duration`, files are numbered ``<stem>_0.mcap``, ``<stem>_1.mcap``, ...
 An unwritable path or a full disk is reported and ends the node with a non-zero exit status;
-SIGINT / SIGTERM drain the queues, finish the file and log the message count per topic.
+SIGINT / SIGTERM record what DDS received until SIGNAL_GRACE s after the signal (messages in flight
+at the signal), finish the file and log the message count per topic, in well under a second
+(publishers that go on publishing do not hold the exit up).
+
+The nodes that publish a recorded topic are asked once for their parameters; each answer is an
+MCAP metadata record (bag/node_parameters.py), so that `replay` reruns the bag with the plant
+integration and the controller settings that made it.
 
 While it records, `~/counts` (diagnostic_msgs/DiagnosticStatus, reliable, transient local) says
 how many messages of each topic are written (a value per topic: key the topic, value the count),
-every COUNTS_PERIOD s when they changed. A tool that knows what a finished loop published waits
+every COUNTS_PERIOD s when they changed, and `parameters:<node>` = 1 for each node whose parameters
+are in the bag. A tool that knows what a finished loop published waits
 for those counts before it stops the nodes (tools/processes.settle): a message still on its way
 when its publisher exits is lost.
 """
@@ -45,8 +52,10 @@ from rclpy.subscription import Subscription
 
 from ..bag.mcap_io import BagError
 from ..bag.mcap_writer import COMPRESSIONS, DEFAULT_CHUNK_SIZE, Ros2McapWriter
+from ..bag.node_parameters import PARAMETERS_RECORD, parameters_record
 from ..core.errors import ConfigError
 from ..ros.parameters import LATCHED_QOS, ParamSpec, declare
+from .recorder_parameters import ParameterSnapshots, node_names
 from .runner import run_node
 
 DEFAULT_TOPICS = ["state", "command", "target", "obstacles", "/diagnostics", "controller/prediction",
@@ -57,6 +66,10 @@ BATCH = 200
 GRAPH_TOPICS = ("/rosout", "/parameter_events")
 #: s between two `~/counts` messages at most (only sent when a count changed)
 COUNTS_PERIOD = 0.1
+#: s after SIGINT / SIGTERM whose messages are still recorded: those in flight at the signal arrive in it
+SIGNAL_GRACE = 0.1
+#: s the exit spends at most taking what the subscriptions hold (then the file is finished)
+DRAIN_LIMIT = 0.5
 
 RECORDER_SPECS = [
     ParamSpec("output", "", "the .mcap file or a directory; empty: bags/run-<YYYYmmdd-HHMMSS>.mcap",
@@ -159,6 +172,11 @@ class RecorderNode(Node):
         self.unrecordable: dict[str, str] = {}
         self.error: str | None = None
         self.file_start_ns: int | None = None
+        #: system-clock ns of the SIGINT / SIGTERM (`signalled`): the exit records what DDS received until
+        #: SIGNAL_GRACE s later
+        self.stop_ns: int | None = None
+        #: the parameter records written (each split file gets them all)
+        self.parameter_records: list[dict[str, str]] = []
         self.writer: Ros2McapWriter = self._open_file()  # an unwritable output fails here, before any topic
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -169,6 +187,7 @@ class RecorderNode(Node):
         self.discovery_timer = self.create_timer(float(values["discovery_period"]), self.discover, clock=steady)
         flush_period = float(values["flush_period"])
         self.flush_timer = self.create_timer(flush_period, self.flush, clock=steady) if flush_period > 0 else None
+        self.snapshots = ParameterSnapshots(self, self.keep_parameters)
         self.discover()
         self.get_logger().info(
             f"recording {'every topic' if self.record_all else ', '.join(self.wanted)} into {self.files[0]} "
@@ -184,6 +203,8 @@ class RecorderNode(Node):
         self.file_start_ns = None
         for topic in self.topics.values():
             writer.add_topic(topic.name, topic.type_name)
+        for record in self.parameter_records:
+            writer.add_metadata(PARAMETERS_RECORD, record)
         return writer
 
     def _split_due(self, now_ns: int) -> bool:
@@ -241,8 +262,22 @@ class RecorderNode(Node):
                 self._subscribe(name, type_name, types, hint)
             elif types:
                 self._check(topic, types)
-            if name in self.topics:
-                self.topics[name].publishers = self.count_publishers(name)
+        publishers: set[str] = set()
+        for topic in self.topics.values():
+            infos = self.get_publishers_info_by_topic(topic.name)
+            topic.publishers = len(infos)
+            publishers |= node_names(infos)
+        self.snapshots.poll(publishers - {self.get_fully_qualified_name()})
+
+    def keep_parameters(self, node: str, values: dict, time_ns: int) -> None:
+        """A node's parameters arrived (ParameterSnapshots): into the bag as a metadata record."""
+        record = parameters_record(node, values, time_ns)
+        self.parameter_records.append(record)
+        if self.error is None:
+            try:
+                self.writer.add_metadata(PARAMETERS_RECORD, record)
+            except BagError as exc:
+                self.fail(exc)
 
     def _subscribe(self, name: str, type_name: str, types: list[str], hint: str | None) -> None:
         log = self.get_logger()
@@ -305,9 +340,9 @@ class RecorderNode(Node):
 
         return on_message
 
-    def take(self, topic: _Topic, limit: int, sub: Subscription | None = None) -> int:
+    def take(self, topic: _Topic, limit: int, sub: Subscription | None = None, until_ns: int | None = None) -> int:
         """Take up to `limit` queued messages of one topic straight from its subscription (or `sub`)
-        and record them."""
+        and record them; with `until_ns`, stop after the first one DDS received later (system clock ns)."""
         sub = sub or topic.subscription
         taken = 0
         while sub is not None and taken < limit and self.error is None:
@@ -317,6 +352,8 @@ class RecorderNode(Node):
                 break
             self.record(topic, item[0], item[1])
             taken += 1
+            if until_ns is not None and (item[1].get("received_timestamp") or 0) > until_ns:
+                break
         return taken
 
     # ---- writing
@@ -360,6 +397,7 @@ class RecorderNode(Node):
     def publish_counts(self) -> None:
         """`~/counts`: the messages written per topic (ERROR level, and the reason, once recording stopped)."""
         counts = {t.name: t.count for t in self.topics.values()}
+        counts.update({f"parameters:{node}": 1 for node in self.snapshots.taken})
         if (counts, self.error) == self.counts_sent:
             return
         self.counts_sent = (counts, self.error)
@@ -376,25 +414,37 @@ class RecorderNode(Node):
             except BagError as exc:
                 self.fail(exc)
 
-    def drain(self, idle: float = 0.2, limit: float = 5.0) -> int:
-        """Take what is still queued in the subscriptions (stop after `idle` s without one, or `limit` s)."""
+    def signalled(self) -> None:
+        """In the SIGINT / SIGTERM handler: note the time (the exit records what DDS received until then
+        and SIGNAL_GRACE s more)."""
+        self.stop_ns = self.stop_ns or time.time_ns()
+
+    def drain(self, before_ns: int | None = None, limit: float = DRAIN_LIMIT) -> int:
+        """Take what DDS receives until `before_ns` (system clock ns; default now), waiting for that time
+        if it is ahead: each reader up to its first later message, so publishers that go on do not
+        keep it busy; at most `limit` s in all. Returns the messages taken."""
+        before = time.time_ns() if before_ns is None else before_ns
+        deadline = time.monotonic() + limit
         taken = 0
-        start = last = time.monotonic()
-        while self.error is None and time.monotonic() - last < idle and time.monotonic() - start < limit:
-            got = False
+        while True:
+            last_pass = time.time_ns() >= before
             for topic in list(self.topics.values()):
-                n = self.take(topic, 1 << 30)
-                taken += n
-                got = got or n > 0
-            if got:
-                last = time.monotonic()
-            else:
-                time.sleep(0.01)
-        return taken
+                for sub in (topic.subscription, topic.companion):
+                    while sub is not None and self.error is None and time.monotonic() < deadline:
+                        n = self.take(topic, BATCH, sub, until_ns=before)
+                        taken += n
+                        if n < BATCH:  # empty, or past `before`
+                            break
+            if last_pass or self.error is not None or time.monotonic() >= deadline:
+                return taken
+            time.sleep(min(0.01, max(0.0, (before - time.time_ns()) * 1e-9)))
 
     def close(self) -> None:
-        """On SIGINT / SIGTERM: drain, finish the file, log the counts."""
-        drained = self.drain() if self.context.ok() else 0
+        """On SIGINT / SIGTERM: take what arrived until SIGNAL_GRACE s after the signal, finish the file,
+        log the counts."""
+        self.snapshots.destroy()
+        stop = self.stop_ns if self.stop_ns is not None else time.time_ns()
+        drained = self.drain(stop + round(SIGNAL_GRACE * 1e9)) if self.context.ok() else 0
         try:
             self.writer.finish()
         except BagError as exc:
@@ -430,7 +480,8 @@ def main(argv: list[str] | None = None) -> int:
         nodes.append(RecorderNode())
         return nodes[-1]
 
-    status = run_node(factory, argv, "recorder", __doc__, on_stop=lambda node: node.close())
+    status = run_node(factory, argv, "recorder", __doc__, on_stop=lambda node: node.close(),
+                      on_signal=lambda node: node.signalled())
     if status == 0 and nodes and nodes[0].error is not None:
         print(f"recorder: error: {nodes[0].error}", file=sys.stderr)
         return 1
