@@ -214,6 +214,7 @@ def test_a_controller_sample_with_an_unknown_status_gets_a_clear_error(tmp_path)
 @pytest.mark.dds
 def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline_mu_0_loop(demo_out, shipped_paper,
                                                                                            tmp_path):
+    from nmpc_avoid_ros.tools.demo import LOCKSTEP_INTEGRATION
     from nmpc_avoid_ros.tools.replay import main as replay_main  # in process: no interpreter start per call
 
     for name in RUNS:
@@ -221,6 +222,10 @@ def test_closed_loop_replay_reproduces_the_lockstep_bags_and_mu_0_is_the_offline
         assert replay_main([str(demo_out / f"{name}.mcap"), "--closed-loop", "--json", str(out)]) == 0
         same = json.loads((tmp_path / f"{name}.json").read_text())
         assert same["replay"]["max_state_error"] <= 1e-6 and len(same["u"]) >= 50
+        # with no flag: the plant and the settings the bag recorded (a lockstep plant: no real-time timing)
+        assert (same["replay"]["plant"], same["replay"]["plant_source"], same["replay"]["timing"]) == \
+            (LOCKSTEP_INTEGRATION, "the bag's /plant parameters", None)
+        assert same["replay"]["settings_source"] == "the bag's /controller parameters"
         assert same["summary"]["certificate_violations"] == 0
     assert replay_main([str(demo_out / "with_avoidance.mcap"), "--closed-loop", "--mu", "0", "--json",
                         str(tmp_path / "mu0.json"), "--out", str(tmp_path / "mu0")]) == 0
@@ -338,3 +343,216 @@ def test_html_report_of_the_demo_bags_is_self_contained_renders_and_scrubs_in_he
             assert errors == []
         finally:
             browser.close()
+
+
+# ------------------------------------------------------------------------------------------------
+# what the bag records of its nodes: replay with the plant and settings that made it; overshoot
+
+
+@pytest.mark.slow
+@pytest.mark.dds
+@pytest.mark.parametrize("name", RUNS)
+def test_the_demo_bags_hold_the_plants_and_the_controllers_parameters(demo_out, name):
+    from nmpc_avoid_ros.bag.analysis import controller_samples
+    from nmpc_avoid_ros.bag.node_parameters import recorded_setup
+    from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
+    from nmpc_avoid_ros.tools.demo import LOCKSTEP_INTEGRATION
+
+    bag = load_bag(demo_out / f"{name}.mcap")
+    setup = recorded_setup(bag, controller_samples(bag)[1])
+    assert (setup.controller_node, setup.plant_node, setup.notes) == ("/controller", "/plant", [])
+    params = load_params_file(default_config_path())
+    assert setup.plant["integration"] == LOCKSTEP_INTEGRATION and setup.plant["lockstep"] is True
+    assert setup.plant["initial_state"] == params.section("plant")["initial_state"]
+    # the demo's controller: the shipped file with its mu override, setting for setting
+    shipped = ControllerSettings.from_params(params.section("controller")).replace(mu=RUNS[name])
+    assert ControllerSettings.from_params(setup.controller) == shipped
+
+
+PLANT_RATE = 20.0  # Hz, the plant node's default publish_rate
+
+
+def _real_time_loop(settings, x0, target, samples, late_every=0, held=3):
+    """The controller against a plant run as the real-time plant node runs (nodes/plant.py): steps of
+    1 / PLANT_RATE s, each under the command held when it is due, x0 held `held` steps before the
+    first command; the command of every `late_every`-th sample reaches the plant a step late.
+    Returns the published states [(log time ns, x)] and the samples [(log time ns, StepResult, s)]."""
+    from nmpc_avoid_ros.core.loop.closed_loop import ContinuousPlant
+    from nmpc_avoid_ros.core.problem.models import make_model
+    from nmpc_avoid_ros.core.sample.controller import NmpcController
+
+    controller, plant = NmpcController(settings), ContinuousPlant(make_model(settings.model))
+    period_ns, per_sample = round(1e9 / PLANT_RATE), round(settings.sample_time * PLANT_RATE)
+    x, previous = np.asarray(x0, float), np.zeros(1)
+    states = [(j * period_ns, x) for j in range(held)]
+    solved = []
+    for k in range(samples):
+        now = states[-1][0]
+        result = controller.step(x, target)
+        solved.append((now + 1, result, now * 1e-9))
+        late = 1 if late_every and k % late_every == late_every - 1 else 0
+        for step in range(per_sample):
+            x = plant.advance(x, previous if step < late else result.u, 1.0 / PLANT_RATE)
+            states.append((states[-1][0] + period_ns, x))
+        previous = result.u
+    return states, solved
+
+
+def _loop_bag(path, settings, states, solved, *, records: bool = True, clock: bool = False):
+    """A bag as the recorder writes one: the target, the plant's `states`, the controller's diagnostics of
+    `solved` (nodes/controller_views.diagnostic_array), a /clock tick per state with `clock`, and with
+    `records` the controller's and the real-time plant's parameters as the recorder keeps them."""
+    from builtin_interfaces.msg import Time
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rosgraph_msgs.msg import Clock
+    from std_msgs.msg import Float64MultiArray
+
+    from nmpc_avoid_ros.bag.mcap_writer import Ros2McapWriter
+    from nmpc_avoid_ros.bag.node_parameters import PARAMETERS_RECORD, parameters_record
+    from nmpc_avoid_ros.nodes.controller_views import diagnostic_array
+
+    with Ros2McapWriter(path) as bag:
+        if records:
+            fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(settings).items()}
+            bag.add_metadata(PARAMETERS_RECORD, parameters_record("/controller", fields, 0))
+            plant = {"model": settings.model, "integration": "continuous", "sample_time": settings.sample_time,
+                     "lockstep": clock, "publish_rate": PLANT_RATE, "initial_state": states[0][1].tolist()}
+            bag.add_metadata(PARAMETERS_RECORD, parameters_record("/plant", plant, 0))
+        bag.write_message("/target", Float64MultiArray(data=[5.0]), 0)
+        for t, x in states:
+            bag.write_message("/state", Float64MultiArray(data=x.tolist()), t)
+            if clock:
+                bag.write_message("/clock", Clock(clock=Time(sec=t // 10**9, nanosec=t % 10**9)), t)
+        for t, result, state_time in solved:
+            values = {"command": str(result.u.tolist()), "mu": f"{settings.mu:g}", "kappa": f"{settings.kappa:g}"}
+            bag.write_message("/diagnostics", diagnostic_array("/controller", Time(), DiagnosticStatus.OK, "ok",
+                                                               values, result, 0.0, state_time, None), t)
+
+
+@pytest.fixture(scope="module")
+def real_time_bags(tmp_path_factory):
+    """The shipped config's paper loop against the real-time continuous plant (every third command a plant
+    step late), written as the recorder would with its parameter records (`records`), without them (`old`:
+    bags made before), and without them but with /clock (`old_clock`)."""
+    from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
+
+    settings = ControllerSettings.from_params(load_params_file(default_config_path()).section("controller"))
+    states, solved = _real_time_loop(settings, [-5.0, 0.0], [5.0], 40, late_every=3)
+    folder = tmp_path_factory.mktemp("real_time")
+    paths = {"records": folder / "records.mcap", "old": folder / "old.mcap", "old_clock": folder / "old_clock.mcap"}
+    _loop_bag(paths["records"], settings, states, solved)
+    _loop_bag(paths["old"], settings, states, solved, records=False)
+    _loop_bag(paths["old_clock"], settings, states, solved, records=False, clock=True)
+    return paths
+
+
+@pytest.mark.slow
+def test_closed_loop_replay_takes_the_plant_its_timing_and_the_settings_from_the_bag(real_time_bags, tmp_path,
+                                                                                      capsys):
+    from nmpc_avoid_ros.tools.replay import main as replay_main
+
+    paths = real_time_bags
+    assert replay_main([str(paths["records"]), "--closed-loop", "--json", str(tmp_path / "same.json")]) == 0
+    out = capsys.readouterr().out
+    same = json.loads((tmp_path / "same.json").read_text())["replay"]
+    # nothing changed, nothing given: the continuous plant the bag recorded, with the loop's timing
+    assert same["plant"] == "continuous" and same["plant_source"] == "the bag's /plant parameters"
+    assert same["settings_source"] == "the bag's /controller parameters"
+    per_sample = round(0.5 * PLANT_RATE)
+    assert same["timing"].startswith(f"the recorded timing: plant steps of {1e3 / PLANT_RATE:g} ms, {per_sample} to "
+                                     f"{per_sample} per sample, "), same
+    # the late ones found (a late command equal to its predecessor, once settled, cannot be told apart)
+    late = int(same["timing"].split(", ")[-1].split(" of ")[0])
+    assert 0 < late <= len(range(2, 40, 3)), same
+    assert same["max_state_error"] <= 1e-6, same
+    assert "plant: continuous integration of van_der_pol (the bag's /plant parameters)" in out
+    # ideal samples miss the late commands and the held start; the Euler plant is another loop altogether
+    assert replay_main([str(paths["records"]), "--closed-loop", "--timing", "ideal", "--json",
+                        str(tmp_path / "ideal.json")]) == 0
+    ideal = json.loads((tmp_path / "ideal.json").read_text())["replay"]
+    assert ideal["timing"] is None and ideal["max_state_error"] > 1e-3
+    assert replay_main([str(paths["records"]), "--closed-loop", "--plant", "euler", "--json",
+                        str(tmp_path / "euler.json")]) == 0
+    euler = json.loads((tmp_path / "euler.json").read_text())["replay"]
+    assert euler["plant"] == "euler" and euler["plant_source"] == "--plant"
+    assert euler["max_state_error"] > ideal["max_state_error"]
+
+
+@pytest.mark.slow
+def test_a_bag_without_parameter_records_is_replayed_on_what_it_implies_and_says_so(real_time_bags, tmp_path,
+                                                                                      capsys):
+    from nmpc_avoid_ros.tools.replay import main as replay_main
+
+    paths = real_time_bags
+    assert replay_main([str(paths["old"]), "--closed-loop", "--json", str(tmp_path / "old.json")]) == 0
+    out = capsys.readouterr().out
+    old = json.loads((tmp_path / "old.json").read_text())["replay"]
+    # no /clock: the plant ran in real time, which only the continuous integration can
+    assert old["plant"] == "continuous" and old["plant_source"].startswith("assumed: the bag records no plant")
+    assert "no /clock" in old["plant_source"] and "--plant" in old["plant_source"]
+    assert old["settings_source"].startswith("assumed: the bag holds no usable controller parameters")
+    assert "van_der_pol.yaml" in old["settings_source"] and old["max_state_error"] <= 1e-6
+    assert "replay --closed-loop: plant: continuous integration of van_der_pol (assumed:" in out
+    assert replay_main([str(paths["old"]), "--resolve"]) == 0
+    assert "replay --resolve: controller settings: assumed: the bag holds no usable controller parameters" in \
+        capsys.readouterr().out
+    # /clock: a lockstep plant, taken to be the lockstep demo's Euler step
+    assert replay_main([str(paths["old_clock"]), "--closed-loop", "--json", str(tmp_path / "clock.json")]) == 0
+    clocked = json.loads((tmp_path / "clock.json").read_text())["replay"]
+    assert clocked["plant"] == "euler" and "lockstep (the bag has /clock)" in clocked["plant_source"]
+
+
+def test_overshoot_is_the_excursion_beyond_the_target_along_the_step_as_a_fraction_of_it():
+    from nmpc_avoid_ros.core.loop.metrics import SETTLING_TOLERANCE, overshoot, tracking
+
+    y = np.array([[-5.0], [0.0], [5.6], [4.9], [5.0]])
+    value, note = overshoot(y, [5.0])
+    assert note is None and value == pytest.approx((5.6 - 5.0) / (5.0 - -5.0))
+    down = 10.0 - y  # the same response to a step down
+    assert overshoot(down, [5.0])[0] == pytest.approx(value)
+    assert overshoot(y[[0, 1, 4]], [5.0]) == (0.0, None)  # never beyond: none
+    # two outputs: only the excursion along the step counts (the one across it is no overshoot)
+    plane = np.array([[0.0, 0.0], [3.0, 1.0], [2.0, 0.0]])
+    assert overshoot(plane, [2.0, 0.0])[0] == pytest.approx(1.0 / 2.0)
+    # a step below the settling tolerance: left out, and the metrics say why
+    start = np.array([[5.0 + 1e-9], [5.02], [5.0]])
+    value, note = overshoot(start, [5.0])
+    assert value is None and "below" in note and f"{SETTLING_TOLERANCE:g}" in note
+    quality = tracking(start, [5.0], 0.5)
+    assert quality["overshoot"] is None and quality["overshoot_note"] == note and quality["settling_step"] == 0
+
+
+def test_analyze_of_a_bag_that_starts_at_its_target_leaves_the_overshoot_out(tmp_path):
+    from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
+    from nmpc_avoid_ros.tools.analyze import main as analyze_main
+
+    settings = ControllerSettings.from_params(load_params_file(default_config_path()).section("controller"))
+    _loop_bag(tmp_path / "at_target.mcap", settings, *_real_time_loop(settings, [5.0, 0.0], [5.0], 6))
+    assert analyze_main([str(tmp_path / "at_target.mcap"), "--out", str(tmp_path / "o")]) == 0
+    (metrics,) = json.loads((tmp_path / "o" / "metrics.json").read_text())["bags"]
+    assert metrics["overshoot"] is None and "below" in metrics["overshoot_note"], metrics
+    assert metrics["settling_step"] == 0
+
+
+def test_recorded_setup_finds_the_controller_and_its_plant_and_says_what_it_cannot_use(tmp_path):
+    from nmpc_avoid_ros.bag.mcap_io import Bag
+    from nmpc_avoid_ros.bag.node_parameters import PARAMETERS_RECORD, parameters_record, recorded_setup
+
+    def bag(*records):
+        return Bag(tmp_path / "b.mcap", {}, {}, True, [], [(PARAMETERS_RECORD, r) for r in records])
+
+    plant = {"model": "van_der_pol", "integration": "rk4"}
+    controller = {"model": "van_der_pol", "mu": 0.0, "lockstep": True, "target": None}
+    records = [parameters_record("/vdp/controller", controller, 1), parameters_record("/vdp/plant", plant, 2),
+               parameters_record("/other/plant", {**plant, "integration": "euler"}, 3)]
+    setup = recorded_setup(bag(*records), "/vdp/controller")
+    # the controller's core settings only (lockstep, target: the node's own); the plant in its namespace
+    assert setup.controller == {"model": "van_der_pol", "mu": 0.0} and setup.plant_node == "/vdp/plant"
+    assert setup.plant["integration"] == "rk4" and setup.notes == []
+    assert "several plants in the bag (/other/plant, /vdp/plant): none taken" in recorded_setup(bag(*records),
+                                                                                              None).notes
+    broken = {"node": "/vdp/plant", "parameters": "{not json", "time_ns": "0"}
+    empty = parameters_record("/vdp/controller", {}, 0)  # what rclpy's service gives for an unset name
+    setup = recorded_setup(bag(empty, broken), "/vdp/controller")
+    assert setup.controller is None and setup.plant is None
+    assert any("do not parse" in n for n in setup.notes) and any("lack its model" in n for n in setup.notes)

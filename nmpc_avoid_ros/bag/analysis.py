@@ -62,6 +62,8 @@ class RecordedRun:
     #: the honest status's depths per sample (core/loop/alarm.py: state_depth, plan_depth -> [K]); empty for
     #: bags of controllers without it
     depths: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the fully qualified name of the controller whose samples these are (its diagnostics' hardware_id)
+    controller_node: str | None = None
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -115,21 +117,31 @@ def _float_list(text: str) -> list[float]:
     return json.loads(text.replace("nan", "NaN").replace("inf", "Infinity"))
 
 
-def load_run(path: str | Path, progress: bool = False, settings: ControllerSettings | None = None) -> RecordedRun:
-    """Read a bag into a RecordedRun; BagError if it holds no solved controller sample.
-
-    `settings`: the controller's, for the obstacle speed and stamp limits its region store applied.
-    """
-    from ..ros.markers import RegionStore  # duck-typed on decoded messages
-
-    bag = load_bag(path, progress_every=20000 if progress else 0)
-    diags = bag.topics.get("/diagnostics", [])
+def controller_samples(bag: Bag) -> tuple[list[tuple[int, dict[str, str]]], str | None]:
+    """The solved samples in the bag's /diagnostics ([(log time ns, {key: value})]) and the name of the
+    controller that reported the first one (None: no sample, or no name)."""
     samples: list[tuple[int, dict[str, str]]] = []
-    for stamp, msg in diags:
+    name = None
+    for stamp, msg in bag.topics.get("/diagnostics", []):
         for status in msg.status:
             values = {kv.key: kv.value for kv in status.values}
             if "solve_time_ms" in values and "state" in values:
                 samples.append((stamp, values))
+                name = name or status.hardware_id or None
+    return samples, name
+
+
+def load_run(path: str | Path, progress: bool = False, settings: ControllerSettings | None = None,
+             bag: Bag | None = None) -> RecordedRun:
+    """Read a bag into a RecordedRun; BagError if it holds no solved controller sample.
+
+    `settings`: the controller's, for the obstacle speed and stamp limits its region store applied.
+    `bag`: the bag at `path` already read (load_bag), so it is not read twice.
+    """
+    from ..ros.markers import RegionStore  # duck-typed on decoded messages
+
+    bag = bag if bag is not None else load_bag(path, progress_every=20000 if progress else 0)
+    samples, controller_node = controller_samples(bag)
     if not samples:
         raise BagError(f"{path}: no controller samples (no /diagnostics with solve results); "
                        f"topics: {', '.join(sorted(bag.topics)) or 'none'}")
@@ -191,6 +203,7 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         costs={key: np.array([float(v.get(key, "nan")) for _, v in samples]) for key in COST_KEYS},
         depths={key: np.array([float(v[key]) for _, v in samples]) for key in ("state_depth", "plan_depth")
                 if all(key in v for _, v in samples)},
+        controller_node=controller_node,
     )
 
 

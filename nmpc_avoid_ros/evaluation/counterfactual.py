@@ -8,6 +8,9 @@ kappa), except those the caller overrides. The states now react to the changed c
 
 Moving regions are re-stamped onto the driver's clock (sample k at k Ts): a region stamped at
 recorded time s is stamped s - t_0, with t_0 the controller's time of the first sample.
+
+The plant is the one the bag recorded (`recorded_plant`: the plant node's model, integration and
+sample time, bag/node_parameters.py), so that a replay with nothing changed reproduces the bag.
 """
 
 from __future__ import annotations
@@ -21,18 +24,122 @@ from typing import Any
 import numpy as np
 
 from ..bag.analysis import RecordedRun, run_metrics
+from ..bag.mcap_io import Bag
+from ..bag.node_parameters import RecordedSetup, plant_sample_time
 from ..core.config.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
 from ..core.errors import ConfigError
-from ..core.loop.closed_loop import ClosedLoopRun, run_closed_loop
+from ..core.loop.closed_loop import PLANT_INTEGRATIONS, ClosedLoopRun, Plant, integration_plant, run_closed_loop
 from ..core.loop.metrics import max_abs_product, outputs, penetration, time_stats, tracking
 from ..core.problem.models import make_model
 from ..core.problem.regions import Region
 from ..core.sample.controller import NmpcController
 from ..core.sample.status import StepStatus
+from .recorded_timing import RecordedTiming, TimedPlant, recorded_timing
 
 #: the metrics compared side by side (and tabulated by a sweep), in this order
 COMPARED = ("settling_step", "final_error", "max_penetration", "max_abs_x1x2", "solve_ms_median", "solve_ms_max",
             "fallbacks", "certificate_violations")
+
+
+@dataclass
+class PlantChoice:
+    """The plant a replay drives: the plant node's `integration` (PLANT_INTEGRATIONS) of `model`, and why.
+
+    `step`: s the plant advances per command when that is its own lockstep sample time rather than
+    the controller's (None: the controller's). `timing`: a real-time plant's steps and late commands
+    as recorded (evaluation/recorded_timing.py; None: every sample lasts sample_time and its command
+    holds from its start). `source`: where the choice comes from (the bag, a flag, or what was
+    assumed and why); `notes`: the timing, and what the replay cannot reproduce (noise).
+    """
+
+    integration: str
+    model: str
+    source: str
+    step: float | None = None
+    notes: list[str] = dataclasses.field(default_factory=list)
+    timing: RecordedTiming | None = None
+
+    def build(self, settings: ControllerSettings) -> Plant:
+        """The core plant (ConfigError when its model does not fit the controller's state and input)."""
+        model, ctrl = make_model(self.model), make_model(settings.model)
+        if (model.n, model.m) != (ctrl.n, ctrl.m):
+            raise ConfigError(f"the plant's model {model.name} (n={model.n}, m={model.m}) does not fit the "
+                              f"controller's {ctrl.name} (n={ctrl.n}, m={ctrl.m})")
+        plant = integration_plant(self.integration, model, self.step or settings.sample_time)
+        if self.timing is not None:
+            return TimedPlant(plant, self.timing)
+        return plant if self.step is None else _OwnStep(plant, self.step)
+
+
+class _OwnStep:
+    """A lockstep plant whose sample time is not the controller's: `step` s per command whatever dt is asked."""
+
+    def __init__(self, plant: Plant, step: float) -> None:
+        self.plant, self.step = plant, step
+
+    def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        return self.plant.advance(x, u, self.step)
+
+
+def recorded_plant(bag: Bag, setup: RecordedSetup, settings: ControllerSettings, flag: str | None = None,
+                   run: RecordedRun | None = None) -> PlantChoice:
+    """The plant of the recording: `flag` (replay --plant) if given, else the plant node's parameters in the
+    bag, else an assumption said out loud (a bag without them predates the recorder's parameter
+    records): no /clock in the bag -> the plant ran in real time, which only its continuous
+    integration can; with /clock -> lockstep, taken to be the euler plant of the lockstep demo.
+
+    With `run`, a continuous plant that ran in real time gets the recording's timing (`with_timing`).
+    """
+    choice = _plant_choice(bag, setup, settings, flag)
+    real_time = not (setup.plant or {}).get("lockstep", bool(bag.topics.get("/clock")))
+    if run is not None and real_time and choice.integration == "continuous":
+        with_timing(choice, bag, setup, run, settings)
+    return choice
+
+
+def with_timing(choice: PlantChoice, bag: Bag, setup: RecordedSetup, run: RecordedRun,
+                settings: ControllerSettings) -> None:
+    """Give `choice` the real-time plant's recorded steps and late commands, or a note why not. The
+    plant's step is 1 / its publish_rate (without its parameters: the median gap of the recorded
+    states' log times, rounded to a whole rate in Hz; the check against the states catches a wrong one)."""
+    rate = (setup.plant or {}).get("publish_rate")
+    if not isinstance(rate, int | float) or not rate > 0:
+        name = next((t for t in sorted(bag.topics) if t == "/state" or t.endswith("/state")), None)
+        times = np.array([t for t, _ in bag.topics.get(name, [])] if name else [], float)
+        rate = round(1e9 / float(np.median(np.diff(times)))) if len(times) > 2 else 0
+    if not rate:
+        choice.notes.append("no recorded timing (too few recorded states): every sample lasts sample_time")
+        return
+    plant = integration_plant("continuous", make_model(choice.model), settings.sample_time)
+    timing, line = recorded_timing(bag, run, plant, 1.0 / rate, settings.sample_time)
+    choice.timing = timing
+    choice.notes.append(line if timing is not None else f"no recorded timing ({line}): every sample lasts "
+                                                         "sample_time")
+
+
+def _plant_choice(bag: Bag, setup: RecordedSetup, settings: ControllerSettings, flag: str | None) -> PlantChoice:
+    plant = setup.plant or {}
+    model = str(plant.get("model", settings.model))
+    if flag is not None:
+        return PlantChoice(flag, model, "--plant")
+    if not plant:
+        clocked = bool(bag.topics.get("/clock"))
+        why = ("the plant ran in lockstep (the bag has /clock), as the lockstep demo's euler plant" if clocked else
+               "the plant ran in real time (no /clock in the bag), which only the continuous integration can")
+        return PlantChoice("euler" if clocked else "continuous", model,
+                           f"assumed: the bag records no plant parameters (recorded before the recorder kept "
+                           f"them); {why}; --plant to choose")
+    integration = plant.get("integration")
+    if integration not in PLANT_INTEGRATIONS:
+        raise ConfigError(f"the bag's plant {setup.plant_node} has integration {integration!r}, not one of "
+                          f"{', '.join(PLANT_INTEGRATIONS)}: give --plant")
+    step = plant_sample_time(plant, settings.sample_time) if plant.get("lockstep") else None
+    choice = PlantChoice(integration, model, f"the bag's {setup.plant_node} parameters",
+                         None if step is None or math.isclose(step, settings.sample_time) else step)
+    noise = plant.get("process_noise_std") or 0.0
+    if noise:
+        choice.notes.append(f"the recorded plant added process noise (std {noise:g}); the replay has none")
+    return choice
 
 
 @dataclass
@@ -110,9 +217,11 @@ class ScheduledController(NmpcController):
         return super().step(*args, **kwargs)
 
 
-def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: str = "euler",
+def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: str | Plant | PlantChoice = "euler",
                        overrides: dict[str, Any] | None = None, label: str = "counterfactual") -> Counterfactual:
     """Drive the recorded run's timeline again from its first state under `settings` + `overrides`.
+
+    `plant`: a core plant name (closed_loop.make_plant), a Plant, or the recording's (`recorded_plant`).
 
     The run-time settings the bag recorded per sample (RecordedRun.parameters) are replayed as they
     changed, except the overridden ones, which hold for the whole run.
@@ -125,6 +234,8 @@ def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: st
         return {name: float(values[min(k, len(values) - 1)]) for name, values in recorded.items()}
 
     controller = ScheduledController(base, schedule)
+    if isinstance(plant, PlantChoice):
+        plant = plant.build(base)
     target, regions = schedules(run)
     result = run_closed_loop(controller, run.x[0], target, len(run.x), plant, regions)
     reference = run.states_with_final

@@ -2,7 +2,9 @@
 
     python -m nmpc_avoid_ros analyze out/with_avoidance.mcap out/without_avoidance.mcap --out out/analysis
 
-Per bag: settling step and time, overshoot, final error, maximum penetration into any avoided
+Per bag: settling step and time, overshoot (the excursion beyond the target in the direction of
+the step, as a fraction of the step; None with `overshoot_note` saying why when the run starts
+within the settling tolerance of its target), final error, maximum penetration into any avoided
 region and minimum clearance (moving regions where they were at each sample's time), solve-time
 median/p99/max, deadline overruns, fallbacks, rejected inputs, whether the file was finished,
 and the stability certificate's violations (V_N per sample in value_function.png;

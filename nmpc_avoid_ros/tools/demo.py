@@ -8,8 +8,10 @@
 Starts plant and controller as separate processes for each run, publishes the target and the
 (empty) obstacle set on their topics, collects what the nodes publish, and writes
 a bag per run (`with_avoidance.mcap`, `without_avoidance.mcap`), then analyses the bags into
-`metrics.json`, `phase_portrait.png`, `time_series.png`, next to the offline reference of the same
-configuration (and, in lockstep, how far the two differ); one JSON per run as the demo saw it.
+`metrics.json`, `phase_portrait.png`, `time_series.png`, next to the offline reference: the same
+loop offline, on the same plant (the lockstep plant's euler step, or in real time the config's
+plant integration, continuous in the shipped files) and how far the two differ; one JSON per run
+as the demo saw it.
 """
 
 from __future__ import annotations
@@ -20,18 +22,26 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from ..core.config.settings import default_config_path
+from ..core.config.settings import default_config_path, load_params_file
 from ..core.errors import NmpcError
+from ..core.loop.closed_loop import ClosedLoopRun, run_closed_loop
 from ..core.loop.metrics import SETTLING_TOLERANCE, settling_step
+from ..core.sample.controller import NmpcController
 from ..core.sample.status import StepStatus
+from ..evaluation.counterfactual import PlantChoice
 from .analyze import analyze
 from .processes import NodeProcess, count_messages, recorder_counts, settle
-from .simulate import load_scenario, simulate
+from .simulate import Scenario, load_scenario, summarize
 
 RUNS = (("with_avoidance", None), ("without_avoidance", 0.0))
+#: the lockstep plant's integration (the paper's Euler loop, exactly the offline one)
+LOCKSTEP_INTEGRATION = "euler"
+#: s the demo waits at most for the recorder to hold the plant's and the controller's parameters
+PARAMETERS_TIMEOUT = 10.0
 #: the recorder subscribes to these at once (before their publishers appear), so no sample is missed
 RECORDED_TYPES = ["state=std_msgs/msg/Float64MultiArray", "command=std_msgs/msg/Float64MultiArray",
                   "target=std_msgs/msg/Float64MultiArray", "obstacles=visualization_msgs/msg/MarkerArray",
@@ -86,7 +96,8 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
         # x0 once the controller, this demo and the recorder listen
         # and exactly `steps` samples: the loop then falls quiet, so no clock/state pair is in flight
         # when the nodes are stopped (the bag holds x(0..steps) and a clock tick for each)
-        plant_args += ["-p", "integration:=euler", "-p", "wait_for_subscribers:=3", "-p", f"max_steps:={steps}"]
+        plant_args += ["-p", f"integration:={LOCKSTEP_INTEGRATION}", "-p", "wait_for_subscribers:=3", "-p",
+                       f"max_steps:={steps}"]
     recorder_args = ["--ros-args", "-p", f"output:={bag}", "-p", "overwrite:=true", "-p",
                      f"types:={json.dumps(RECORDED_TYPES)}"]
     recorder = NodeProcess("recorder", recorder_args, env, log_dir)
@@ -118,6 +129,14 @@ def _collect_run(config: Path, mu: float | None, steps: int, lockstep: bool, env
                             f"({len(states)} states, {len(samples)} samples)")
         if lockstep:  # the loop is quiet: the recorder takes its last messages before the nodes stop
             settle(lambda: executor.spin_once(timeout_sec=0.02), heard, recorded)
+        # the plant's and the controller's parameters in the bag, so that `replay` reruns it as it ran
+        wanted = [f"parameters:{node.get_namespace().rstrip('/')}/{name}" for name in ("plant", "controller")]
+        end = time.monotonic() + PARAMETERS_TIMEOUT
+        while not all(key in recorded for key in wanted) and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        if missing := [key.partition(":")[2] for key in wanted if key not in recorded]:
+            print(f"demo: warning: the bag lacks the parameters of {', '.join(missing)} (the recorder did not get "
+                  f"them in {PARAMETERS_TIMEOUT:g} s); replay will assume them", file=sys.stderr)
     finally:
         codes = [p.stop() for p in reversed(procs)]  # plant, controller, then the recorder finishes the bag
         executor.shutdown()
@@ -155,7 +174,8 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
         print(f"demo: {name} (mu={run_mu:g}), {'lockstep' if lockstep else 'real time'} ...", flush=True)
         data = _collect_run(config, mu, steps, lockstep, env, out / "logs", timeout, (out / f"{name}.mcap").resolve())
         x = np.array(data["x"])
-        offline, offline_summary = simulate(load_scenario(config, steps=steps, mu=run_mu, plant="euler"))
+        plant = run_plant(config, lockstep)
+        offline, offline_summary = offline_reference(load_scenario(config, steps=steps, mu=run_mu), plant)
         summary = {
             "mu": run_mu,
             "settling_step": settling_step(x[:, 0], scenario.target[0], SETTLING_TOLERANCE),
@@ -164,10 +184,12 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
             "solve_ms_median": float(np.median(data["solve_ms"])),
             "solve_ms_max": float(np.max(data["solve_ms"])),
             "fallbacks": sum(StepStatus(s).is_fallback for s in data["status"]),
-            "offline_reference": {k: offline_summary[k] for k in ("settling_step", "max_abs_x1x2")},
+            "offline_reference": {"plant": plant.integration,
+                                  **{k: offline_summary[k] for k in ("settling_step", "max_abs_x1x2")}},
+            # lockstep: the same loop, to rounding; real time: also the loop's timing (the plant's own steps,
+            # commands a step late), which `replay --closed-loop` reproduces and this reference does not
+            "max_deviation_from_offline": float(np.max(np.abs(x - offline.x[:len(x)]))),
         }
-        if lockstep:
-            summary["max_deviation_from_offline"] = float(np.max(np.abs(x - offline.x)))
         metrics["runs"][name] = summary
         (out / f"{name}.json").write_text(json.dumps({**data, "summary": summary}))
         labels.append(f"{name.replace('_', ' ')} (mu={run_mu:g})")
@@ -179,6 +201,22 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
     metrics["bags"] = report["bags"]
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
+
+
+def run_plant(config: Path, lockstep: bool) -> PlantChoice:
+    """The plant node's simulation in the demo: in lockstep LOCKSTEP_INTEGRATION, else the config's plant
+    integration (the node's default: continuous), of the config's plant model."""
+    plant = load_params_file(config).section("plant")
+    integration = LOCKSTEP_INTEGRATION if lockstep else str(plant.get("integration", "continuous"))
+    step = float(plant["sample_time"]) if lockstep and "sample_time" in plant else None
+    return PlantChoice(integration, str(plant.get("model", "van_der_pol")), f"the demo's plant ({config.name})", step)
+
+
+def offline_reference(scenario: Scenario, plant: PlantChoice) -> tuple[ClosedLoopRun, dict[str, Any]]:
+    """The scenario's loop offline on `plant`, the run's own: (ClosedLoopRun, simulate's summary)."""
+    controller = NmpcController(scenario.settings)
+    run = run_closed_loop(controller, scenario.x0, scenario.target, scenario.steps, plant.build(scenario.settings))
+    return run, summarize(run, scenario.target, controller.model)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,17 @@
     python -m nmpc_avoid_ros replay BAG [--rate 2.0]                       # republish (needs ROS)
     python -m nmpc_avoid_ros replay BAG --resolve [--config FILE] [--mu 0] [--json OUT]
     python -m nmpc_avoid_ros replay BAG --closed-loop [--config FILE] [--mu X] [--kappa X] [--solver NAME]
-        [--plant euler|continuous] [--json FILE] [--out DIR] [--sweep NAME=V1,V2,...]
+        [--plant continuous|euler|rk4] [--timing recorded|ideal] [--json FILE] [--out DIR] [--sweep NAME=V1,V2,...]
+
+Both offline modes take the controller settings from the bag (the parameters the recorder asked
+the controller for) and `--closed-loop` also the plant (the plant node's model, integration and
+sample time), so a replay with nothing changed reproduces the bag; `--config` and `--plant` replace
+them. A plant that ran in real time is replayed with the loop's recorded timing (the plant's own
+steps, and commands that reached it a step late, read from the recorded states; `--timing
+ideal`: every sample lasts sample_time and its command holds from its start). A bag recorded
+before the recorder kept parameters gets the shipped van_der_pol.yaml and a plant inferred from
+the bag (no /clock: real time, so the continuous plant; /clock: the lockstep demo's euler plant),
+and the output says so.
 
 `--resolve` feeds the recorded states, targets and regions, sample by sample, to a fresh
 controller built from the configuration (with overrides) and reports how its commands differ from
@@ -30,13 +40,13 @@ from typing import Any
 
 import numpy as np
 
-from ..bag.analysis import RecordedRun, load_run
+from ..bag.analysis import RecordedRun
 from ..bag.mcap_io import BagError, load_bag
-from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
+from ..core.config.settings import ControllerSettings
 from ..core.errors import NmpcError
-from ..core.loop.closed_loop import PLANTS
+from ..core.loop.closed_loop import PLANT_INTEGRATIONS
 from ..core.sample.controller import NmpcController
-from .replay_closed_loop import closed_loop_main
+from .replay_closed_loop import closed_loop_main, describe_inputs, replay_inputs
 
 LATCHED_TOPICS = ("target", "obstacles")
 
@@ -132,34 +142,39 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--resolve", action="store_true", help="re-solve the controller offline on the bag")
     mode.add_argument("--closed-loop", action="store_true",
                       help="rerun the closed loop from the bag's first state under the new tuning")
-    ap.add_argument("--config", type=Path, help="params file (default: the shipped van_der_pol.yaml)")
+    ap.add_argument("--config", type=Path, help="params file (default: the controller parameters the bag recorded, "
+                    "else the shipped van_der_pol.yaml)")
     ap.add_argument("--mu", type=float, help="override mu (the whole run)")
     ap.add_argument("--kappa", type=float, help="override kappa (the whole run)")
     ap.add_argument("--tolerance", type=float, default=1e-6, help="a command differs beyond this (--resolve)")
     ap.add_argument("--json", type=Path, help="write the comparison (--resolve) or the run in simulate's format")
     ap.add_argument("--solver", help="--closed-loop: solver path (structural: a controller of its own)")
-    ap.add_argument("--plant", choices=PLANTS, default="euler", help="--closed-loop: plant model")
+    ap.add_argument("--plant", choices=PLANT_INTEGRATIONS, help="--closed-loop: plant integration (default: the "
+                    "plant the bag recorded; continuous: ZOH + DOP853, euler/rk4: one step per sample)")
+    ap.add_argument("--timing", choices=("recorded", "ideal"), default="recorded",
+                    help="--closed-loop, a real-time plant: the loop's timing as recorded (default) or ideal samples")
     ap.add_argument("--out", type=Path, help="--closed-loop: figures and metrics.json here")
     ap.add_argument("--sweep", help="--closed-loop: NAME=V1,V2,... of a run-time setting")
     args = ap.parse_args(argv)
     if args.closed_loop:
         return closed_loop_main(args)
-    if args.sweep or args.out or args.solver or args.plant != "euler":
-        print("replay: error: --sweep, --out, --solver and --plant need --closed-loop", file=sys.stderr)
+    if args.sweep or args.out or args.solver or args.plant is not None or args.timing != "recorded":
+        print("replay: error: --sweep, --out, --solver, --plant and --timing need --closed-loop", file=sys.stderr)
         return 2
     try:
         if not args.resolve:
             if not args.rate > 0:
                 raise NmpcError(f"--rate must be positive, got {args.rate}")
             return republish(args.bag, args.rate, args.wait)
-        params = load_params_file(args.config or default_config_path()).section("controller")
-        params.update({k: v for k, v in (("mu", args.mu), ("kappa", args.kappa)) if v is not None})
-        settings = ControllerSettings.from_params(params)
-        run = load_run(args.bag, settings=settings)
+        overrides = {k: v for k, v in (("mu", args.mu), ("kappa", args.kappa)) if v is not None}
+        inputs = replay_inputs(args.bag, args.config, overrides=overrides)
+        run, settings = inputs.run, inputs.settings.replace(**overrides)
         report = resolve(run, settings, args.tolerance)
     except (BagError, NmpcError) as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
         return 1
+    for line in describe_inputs(inputs):
+        print(f"replay --resolve: {line}")
     for s in report["steps"]:
         if s["max_abs_diff"] > args.tolerance:
             print(f"step {s['step']:4d}: recorded u {s['recorded_u']} resolved u {s['resolved_u']} "

@@ -1,4 +1,11 @@
-"""`replay BAG --closed-loop`: the counterfactual closed loop of a bag, its figures and sweeps (see replay.py)."""
+"""`replay BAG --closed-loop`: the counterfactual closed loop of a bag, its figures and sweeps (see replay.py).
+
+What the replay runs comes from the bag unless a flag says otherwise (`replay_inputs`): the
+controller settings from the controller's recorded parameters (else --config, else the shipped
+van_der_pol.yaml, said so), the plant from the plant node's (evaluation/counterfactual.recorded_plant)
+and, for a real-time plant, the loop's timing from the recorded states (evaluation/recorded_timing.py;
+`--timing ideal`: every sample lasts sample_time and its command holds from its start).
+"""
 
 from __future__ import annotations
 
@@ -6,23 +13,72 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..bag.analysis import RecordedRun, load_run
+from ..bag.analysis import RecordedRun, controller_samples, load_run
 from ..bag.figures import Trace, phase_portrait, run_figures, value_function_plot
-from ..bag.mcap_io import BagError
+from ..bag.mcap_io import Bag, BagError, load_bag
+from ..bag.node_parameters import RecordedSetup, recorded_setup
 from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
 from ..evaluation.counterfactual import (
     Counterfactual,
+    PlantChoice,
     metrics_table,
     parse_sweep,
     recorded_metrics,
+    recorded_plant,
     replay_closed_loop,
 )
+
+
+@dataclass
+class ReplayInputs:
+    """A bag read for replaying: the bag, its run, the controller settings to replay it with and their
+    source (one line), and what the bag recorded about its nodes (`setup`)."""
+
+    bag: Bag
+    run: RecordedRun
+    settings: ControllerSettings
+    settings_source: str
+    setup: RecordedSetup
+
+
+def replay_inputs(path: Path, config: Path | None = None, solver: str | None = None,
+                  overrides: dict[str, Any] | None = None) -> ReplayInputs:
+    """Read the bag once; the settings are the file `config` if given, else the recorded controller's
+    parameters, else the shipped van_der_pol.yaml (the source says which and why), then `solver` and
+    `overrides` (checked here, before the run is read). BagError / ConfigError on failure."""
+    bag = load_bag(path)
+    setup = recorded_setup(bag, controller_samples(bag)[1])
+    if config is not None:
+        params, source = load_params_file(config).section("controller"), f"--config {config}"
+    elif setup.controller is not None:
+        params, source = dict(setup.controller), f"the bag's {setup.controller_node} parameters"
+    else:
+        default = default_config_path()
+        params = load_params_file(default).section("controller")
+        source = (f"assumed: the bag holds no usable controller parameters (bags recorded before the recorder "
+                  f"kept them have none): the shipped {default.name}; --config to choose")
+    if solver is not None:
+        params["solver"] = solver
+    settings = ControllerSettings.from_params(params)
+    settings.replace(**(overrides or {}))  # validated before the run is read
+    return ReplayInputs(bag, load_run(path, settings=settings, bag=bag), settings, source, setup)
+
+
+def describe_inputs(inputs: ReplayInputs, plant: PlantChoice | None = None) -> list[str]:
+    """Lines saying where the settings (and the plant) come from, and what was missing in the bag."""
+    lines = [f"controller settings: {inputs.settings_source}"]
+    if plant is not None:
+        lines.append(f"plant: {plant.integration} integration of {plant.model}"
+                     + (f", {plant.step:g} s per command" if plant.step else "") + f" ({plant.source})")
+        lines += plant.notes
+    return lines + inputs.setup.notes
 
 
 def recorded_trace(run: RecordedRun, label: str = "recorded") -> Trace:
@@ -60,35 +116,38 @@ def write_outputs(out: Path, run: RecordedRun, settings: ControllerSettings, run
 def closed_loop_main(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     try:
-        params = load_params_file(args.config or default_config_path()).section("controller")
-        if args.solver is not None:
-            params["solver"] = args.solver
-        settings = ControllerSettings.from_params(params)
         overrides = {k: v for k, v in (("mu", args.mu), ("kappa", args.kappa)) if v is not None}
         sweep = parse_sweep(args.sweep) if args.sweep else None
-        settings.replace(**overrides)  # validated before the bag is read
-        run = load_run(args.bag, settings=settings)
+        inputs = replay_inputs(args.bag, args.config, args.solver, overrides)
+        run, settings = inputs.run, inputs.settings
+        plant = recorded_plant(inputs.bag, inputs.setup, settings, args.plant,
+                               run if args.timing == "recorded" else None)
         if sweep is None:
             variants = [("counterfactual", overrides)]
         else:
             name, values = sweep
             variants = [(f"{name}={v:g}", {**overrides, name: v}) for v in values]
-        runs = [replay_closed_loop(run, settings, args.plant, changes, label) for label, changes in variants]
+        runs = [replay_closed_loop(run, settings, plant, changes, label) for label, changes in variants]
     except (BagError, NmpcError) as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
         return 1
+    notes = describe_inputs(inputs, plant)
     recorded = recorded_metrics(run, settings)
     rows = [("recorded", recorded)] + [(cf.label, cf.metrics) for cf in runs]
     table = metrics_table(rows)
     seconds = time.perf_counter() - started
     partial = "" if run.finished else f" (the file was not finished: {len(run.x)} samples recovered, replayed)"
+    for line in notes:
+        print(f"replay --closed-loop: {line}")
     print(table)
     for cf in runs:
-        print(f"replay --closed-loop: {cf.label}: {len(cf.run.u)} samples on the {args.plant} plant from "
+        print(f"replay --closed-loop: {cf.label}: {len(cf.run.u)} samples on the {plant.integration} plant from "
               f"x0 = {run.x[0].tolist()}; max |x - x_recorded| {cf.max_state_error:.3g}")
     print(f"replay --closed-loop: {len(runs)} run(s) in {seconds:.1f} s{partial}")
-    report = {"bag": str(args.bag), "finished": run.finished, "plant": args.plant, "seconds": seconds,
-              "recorded": recorded, "table": table,
+    report = {"bag": str(args.bag), "finished": run.finished, "plant": plant.integration, "plant_model": plant.model,
+              "plant_source": plant.source, "settings_source": inputs.settings_source, "notes": notes,
+              "timing": None if plant.timing is None else plant.timing.describe(),
+              "seconds": seconds, "recorded": recorded, "table": table,
               "runs": [{"label": cf.label, "changes": cf.changes, "metrics": cf.metrics,
                         "max_state_error": cf.max_state_error} for cf in runs]}
     if args.json:

@@ -32,10 +32,12 @@ from .metrics import SETTLING_TOLERANCE, max_abs_product, settling_step
 
 #: the metrics' old home: kept importable from here for existing callers
 __all__ = ["PLANTS", "SETTLING_TOLERANCE", "ClosedLoop", "ClosedLoopRun", "ContinuousPlant", "DiscretePlant",
-           "Plant", "StepOutcome", "Stepper", "Trajectory", "drive", "make_plant", "max_abs_product",
-           "run_closed_loop", "settling_step"]
+           "PLANT_INTEGRATIONS", "Plant", "StepOutcome", "Stepper", "Trajectory", "drive", "integration_plant",
+           "make_plant", "max_abs_product", "run_closed_loop", "settling_step"]
 
 PLANTS = ("euler", "continuous")
+#: the plant node's `integration` values (nodes/plant.py): continuous ZOH, or one discrete step per sample
+PLANT_INTEGRATIONS = ("continuous", "euler", "rk4")
 
 
 class ContinuousPlant:
@@ -81,6 +83,16 @@ def make_plant(kind: str, model: Model, settings: ControllerSettings) -> Plant:
     if kind == "continuous":
         return ContinuousPlant(model)
     raise ConfigError(f"plant must be one of {PLANTS}, got {kind!r}")
+
+
+def integration_plant(integration: str, model: Model, sample_time: float) -> Plant:
+    """The plant node's simulator for its `integration` parameter: 'continuous' -> ContinuousPlant,
+    'euler' / 'rk4' -> one step of that method per `sample_time` (s), as nodes/plant.py runs them."""
+    if integration == "continuous":
+        return ContinuousPlant(model)
+    if integration in PLANT_INTEGRATIONS:
+        return DiscretePlant(model, sample_time, integration)
+    raise ConfigError(f"plant integration must be one of {PLANT_INTEGRATIONS}, got {integration!r}")
 
 
 class Plant(Protocol):
@@ -272,12 +284,13 @@ def run_closed_loop(
     x0: Sequence[float],
     target: TargetSchedule,
     steps: int,
-    plant: str = "euler",
+    plant: str | Plant = "euler",
     regions: RegionSchedule | None = None,
     on_step: Callable[[int, StepResult], None] | None = None,
     stop_on: tuple[type[BaseException], ...] = (),
 ) -> ClosedLoopRun:
-    """`steps` samples of the controller against the named plant ('euler' or 'continuous').
+    """`steps` samples of the controller against the named plant ('euler' or 'continuous', see
+    make_plant) or a given `Plant` (e.g. `integration_plant`).
 
     `target` and `regions` may be functions of the step index (a schedule); a regions function
     returning None keeps the current set. `stop_on`: see ClosedLoop.run. Sample k happens at time
@@ -288,7 +301,7 @@ def run_closed_loop(
     x = np.asarray(x0, float).ravel()
     if x.size != controller.model.n or not np.all(np.isfinite(x)):
         raise ConfigError(f"x0 must be {controller.model.n} finite numbers, got {list(x0)}")
-    sim = make_plant(plant, controller.model, controller.settings)
+    sim = make_plant(plant, controller.model, controller.settings) if isinstance(plant, str) else plant
     certificate, certified = StabilityCertificate(controller), []
 
     def observe(k: int, result: StepResult) -> None:
@@ -299,6 +312,7 @@ def run_closed_loop(
 
     loop = ClosedLoop(controller, sim, x, target, controller.settings.sample_time, regions, observe)
     run = ClosedLoopRun.from_trajectory(loop.run(steps, stop_on),
-                                        {"plant": plant, "nlp_builds": controller.nlp_builds})
+                                        {"plant": plant if isinstance(plant, str) else type(plant).__name__,
+                                         "nlp_builds": controller.nlp_builds})
     run.certificate = certified[:len(run.u)]
     return run

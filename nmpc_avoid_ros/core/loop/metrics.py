@@ -14,7 +14,9 @@ last one, u [K, m] the commands):
 * penetration is the largest g over the states (keep-in expression: its value, > 0 outside the
   keep-in set, e.g. |x1 x2| - 2; region: `Region.depth`, for an ellipse 1 - normalised r^2),
   0 if no state is ever inside; clearance is -max g (None when there is no region at all);
-* settled: |y - y_t| (Euclidean) below SETTLING_TOLERANCE from some sample on, for good.
+* settled: |y - y_t| (Euclidean) below SETTLING_TOLERANCE from some sample on, for good;
+* overshoot: the largest excursion beyond y_t in the direction of the step s = y_t - y(0), as a
+  fraction of |s|; left out (None, with the reason) when |s| < SETTLING_TOLERANCE (`overshoot`).
 """
 
 from __future__ import annotations
@@ -61,18 +63,38 @@ def outputs(model: Model, x: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.array([np.asarray(model.output(xk, uk)).ravel() for xk, uk in zip(x, us)])
 
 
+def overshoot(y: np.ndarray, target: Sequence[float], min_step: float = SETTLING_TOLERANCE
+              ) -> tuple[float | None, str | None]:
+    """Overshoot of the outputs y [K+1, p] (output units) against the step from y(0) to the target y_t [p].
+
+    With the step s = y_t - y(0) (Euclidean size |s|), the overshoot is the largest excursion beyond
+    the target in the direction of the step, divided by |s|: max(0, max_k (y(k) - y_t) . s / |s|^2)
+    (dimensionless; 0.1 = 10 % of the step). Below `min_step` (default: the settling tolerance, in
+    output units) the run starts settled and that fraction means nothing (a bag that began at its
+    target gave 7e6): (None, the reason). Otherwise (value, None).
+    """
+    y, target = np.atleast_2d(np.asarray(y, float)), np.asarray(target, float)
+    step = target - y[0]
+    size = float(np.linalg.norm(step))
+    if not size >= min_step:
+        return None, (f"step |y_t - y(0)| = {size:.3g} is below {min_step:g} (the settling tolerance): the run starts "
+                      "settled, so there is no step to overshoot")
+    beyond = (y - target) @ step / size
+    return float(max(0.0, np.max(beyond)) / size), None
+
+
 def tracking(y: np.ndarray, target: Sequence[float], sample_time: float,
              tolerance: float = SETTLING_TOLERANCE) -> dict[str, Any]:
-    """Settling step and time (s), final error |y_K - y_t| and overshoot (fraction of the way) of y [K+1, p]."""
+    """Settling step and time (s), final error |y_K - y_t| and overshoot (`overshoot`) of y [K+1, p].
+
+    `overshoot` is None when the step is below `tolerance`; `overshoot_note` then says why (else None).
+    """
     target = np.asarray(target, float)
     err = np.linalg.norm(y - target, axis=1)
     step = settling_step(err, 0.0, tolerance)
-    span = target - y[0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        progress = (y - y[0]) / np.where(np.abs(span) > 1e-12, span, np.nan)
+    over, note = overshoot(y, target, tolerance)
     return {"settling_step": step, "settling_time": None if step is None else float(step * sample_time),
-            "final_error": float(err[-1]),
-            "overshoot": float(max(0.0, np.nanmax(progress) - 1.0)) if np.any(np.isfinite(progress)) else 0.0}
+            "final_error": float(err[-1]), "overshoot": over, "overshoot_note": note}
 
 
 def region_depth(region: Region, points: np.ndarray) -> np.ndarray:
