@@ -7,7 +7,7 @@ from setuptools import find_packages, setup
 PACKAGE = "nmpc_avoid_ros"
 #: every command of nmpc_avoid_ros/cli.py COMMANDS (test_readme.py keeps README, cli and this list equal)
 EXECUTABLES = ("controller", "plant", "recorder", "obstacles", "simulate", "figures", "analyze", "replay", "demo",
-               "bench", "campaign")
+               "bench", "campaign", "send")
 
 setup(
     name=PACKAGE,

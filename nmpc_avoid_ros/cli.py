@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("nmpc_avoid_ros.bench.main", "solver paths vs. Opti + IPOPT and do-mpc, one process -> JSON"),
     "campaign": ("nmpc_avoid_ros.evaluation.campaign.cli",
                  "Monte Carlo campaign over random scenarios (local or on Dask) -> JSON + plots"),
+    "send": ("nmpc_avoid_ros.tools.send", "a target, an obstacle or a parameter to a running controller, acknowledged"),
 }
 
 
@@ -50,6 +51,7 @@ figures_main = _entry("figures")
 demo_main = _entry("demo")
 bench_main = _entry("bench")
 campaign_main = _entry("campaign")
+send_main = _entry("send")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -484,6 +484,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                   "command": str(np.asarray(self.last_command).tolist()),
                   "state_age_ms": f"{self.state_age * 1e3:.1f}", "max_state_gap_ms": f"{self.max_state_gap * 1e3:.1f}",
                   "stale_for_s": f"{0.0 if self.stale_since is None else self.now() - self.stale_since:.3f}",
+                  "cover_wake_delay_ms": f"{self.cover_wake_delay * 1e3:.1f}",
                   "last_stale_s": f"{self.last_stale:.3f}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
                   "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected,

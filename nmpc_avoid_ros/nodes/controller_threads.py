@@ -116,6 +116,8 @@ class AlwaysAnswers:
         self._command_lock = threading.Lock()
         self._cover_inputs = None  # the rest of the plan in force (inputs [m]), None: no cover
         self._last_command_at = -math.inf  # node-clock s of the last command published
+        #: longest delay, s, of the late cover's wake-ups beyond its period (what it could not control)
+        self.cover_wake_delay = 0.0
 
     def start_late_cover(self, sample_time: float) -> None:
         """Timer mode, on activate: check every sample_time / LATE_CHECKS (wall clock; the gap itself is
@@ -124,7 +126,12 @@ class AlwaysAnswers:
         period, stop = sample_time / LATE_CHECKS, self._late_stop
 
         def watch() -> None:
-            while not stop.wait(period):
+            while True:
+                begin = time.monotonic()
+                if stop.wait(period):
+                    return
+                # how late this thread woke (the interpreter lock or the CPU were elsewhere): diagnostics
+                self.cover_wake_delay = max(self.cover_wake_delay, time.monotonic() - begin - period)
                 try:
                     self.on_late_check()
                 except Exception as exc:  # noqa: BLE001 - a node being torn down; the cover must not die silently
