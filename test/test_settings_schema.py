@@ -37,7 +37,8 @@ def test_readme_parameter_tables_are_the_declared_ones():
 def test_every_field_is_declared_and_the_derived_sets_follow_the_declarations():
     assert list(SETTINGS) == [f.name for f in dataclasses.fields(ControllerSettings)]
     assert RUNTIME_FIELDS == {"state_weights", "input_weights", "kappa", "mu", "feasibility_tolerance",
-                              "predict_obstacles", "region_margin", "max_obstacle_speed", "max_obstacle_stamp_skew",
+                              "predict_obstacles", "region_margin", "mismatch_gain", "mismatch_window",
+                              "max_mismatch_margin", "max_obstacle_speed", "max_obstacle_stamp_skew",
                               "certificate_tolerance", "certificate_error_after", "escape_guesses_per_sample",
                               "solve_domain_margin"}
     # the solver budgets are options of the CasADi solver Function, fixed at construction

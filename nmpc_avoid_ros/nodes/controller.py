@@ -13,7 +13,6 @@ drives it through the standard lifecycle_msgs services.
 Always answers (controller_threads.py): SIGINT/SIGTERM and lifecycle transitions are honoured
 mid-solve; input floods do not hold the samples up.
 
-
 Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the
 latest state. A sample that finds no new state since the last solve (lost or late messages)
 applies the next input of the last plan (core `coast`, the shifted plan of the paper's
@@ -21,18 +20,19 @@ feasibility argument) and is counted in `missed_samples`.
 Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message is solved once,
 as it arrives, so the ROS loop reproduces the offline loop exactly.
 
-Diagnostics (one DiagnosticArray per sample on /diagnostics, values as strings): the counters
-`samples`, `fallbacks`, `rejected_inputs`, `deadline_overruns`, `stale` (samples without a usable
-state), `states_received` (good states), `missed_samples` (timer mode: samples with no new state
-since the last solve), `stale_episodes`, `late_samples` (timer mode: samples covered with the last
-plan's next input while a step ran late, controller_threads.py); `state_age_ms` (age of
-the state this sample used), `max_state_gap_ms` (longest interval between two good states),
-`stale_for_s` (how long the current stale episode lasts) and `last_stale_s` (length of the last
-one that ended); with a solve also `status`, `solver_status`, `iterations`, `solve_time_ms`,
-`step_latency_ms`, `budget_exhausted`, the costs, `y_a`, `state` and `state_time` (node-clock s
-when that state arrived, in lockstep on sim time its sample time: moving obstacles are predicted
-from it). Obstacles: `moving_regions`, `obstacle_resets` (velocity estimates reset) and
-`last_obstacle_issue` (the latest refusal or reset of a marker, with its reason).
+Diagnostics (one DiagnosticArray per sample on /diagnostics, values as strings): the counters `samples`,
+`fallbacks`, `rejected_inputs`, `deadline_overruns`, `stale` (samples without a usable state), `states_received`
+(good states), `missed_samples` (timer mode: samples with no new state since the last solve), `stale_episodes`,
+`late_samples` (timer mode: samples covered with the last plan's next input while a step ran late,
+controller_threads.py); `state_age_ms` (age of the state this sample used), `max_state_gap_ms` (longest interval
+between two good states), `stale_for_s` (how long the current stale episode lasts) and `last_stale_s` (length of
+the last one that ended); with a solve also `status`, `solver_status`, `iterations`, `solve_time_ms`,
+`step_latency_ms`, `budget_exhausted`, the costs, `y_a`, `state` and `state_time` (node-clock s when that state
+arrived, in lockstep on sim time its sample time: moving obstacles are predicted from it). Obstacles:
+`moving_regions`, `obstacle_resets` (velocity estimates reset) and `last_obstacle_issue` (the latest refusal or
+reset of a marker, with its reason). The plant-model mismatch (core/sample/mismatch.py): `mismatch_error` (this
+sample's one-step prediction error, plane units) and `mismatch_margin` (what it adds to the obstacles);
+`cover_wake_delay_ms`: the late cover's longest wake-up delay.
 
 Stability certificate (core/loop/certificate.py, docs/certificate.md): every sample checks the decrease
 of the value function; diagnostics carry `value_function`, `decrease`, `decrease_bound`,
@@ -173,7 +173,6 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                        "late_samples": 0}
         self.max_state_gap = 0.0  # s, longest interval between two good states
         self.last_stale = 0.0  # s, length of the last stale episode that ended
-
         self.last_rejected = ""
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.views = ControllerViews(self, self.io)
@@ -484,8 +483,9 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                   "command": str(np.asarray(self.last_command).tolist()),
                   "state_age_ms": f"{self.state_age * 1e3:.1f}", "max_state_gap_ms": f"{self.max_state_gap * 1e3:.1f}",
                   "stale_for_s": f"{0.0 if self.stale_since is None else self.now() - self.stale_since:.3f}",
-                  "cover_wake_delay_ms": f"{self.cover_wake_delay * 1e3:.1f}",
-                  "last_stale_s": f"{self.last_stale:.3f}",
+                  "last_stale_s": f"{self.last_stale:.3f}", "cover_wake_delay_ms": f"{self.cover_wake_delay * 1e3:.1f}",
+                  "mismatch_margin": f"{self.controller.mismatch_margin:.6g}",
+                  "mismatch_error": f"{self.controller.memory.mismatch.last_error:.6g}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
                   "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected,
                   **({"state_depth": f"{a.state_depth:.6g}", "plan_depth": f"{a.plan_depth:.6g}"}

@@ -129,6 +129,16 @@ class ControllerSettings:
              "edges moved out): room for what the prediction does not see, the motion between samples and the "
              "loop's latency (docs/design.md, 'Clearance margin'); the recorded clearance is the real regions'",
         runtime=True, low=0.0)
+    mismatch_gain: float = setting(
+        0.0, "obstacles are planned around inflated, on top of region_margin, by this multiple of the largest "
+             "one-step prediction error (plane units) measured over the last mismatch_window samples: room for "
+             "what the model gets wrong (1: round obstacles and polygons, 2.5: any ellipse; docs/design.md, "
+             "'Mismatch margin'); 0: off", runtime=True, low=0.0, high=100.0)
+    mismatch_window: int = setting(20, "samples over which the largest one-step prediction error is taken for "
+                                       "mismatch_gain", runtime=True, low=1, high=100000)
+    max_mismatch_margin: float = setting(0.5, "largest margin mismatch_gain may add, plane units (a jump of the "
+                                              "state, e.g. a plant reset, must not swell the obstacles over the "
+                                              "whole plane)", runtime=True, low=0.0)
     predict_obstacles: bool = setting(True, "predict moving obstacles over the horizon (stage k sees c + v (t_k - "
                                             "stamp)); false: each stays where it was last seen", runtime=True)
     max_obstacle_speed: float = setting(3.0, "largest obstacle speed accepted, plane units/s: a faster given velocity "

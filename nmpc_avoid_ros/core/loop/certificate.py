@@ -136,7 +136,7 @@ def what_changed(previous: tuple, key: tuple, time: float | None, target_size: i
     """'' when Assumption P holds between two samples, else what changed ('target', 'regions', ...).
 
     key = (parameters but x(0) and the slots: y_t [target_size] first, then the weights; the regions;
-    the prediction switch; region_margin). Equal regions are `same_trajectory`, in order."""
+    the prediction switch; region_margin; the mismatch margin). Equal regions are `same_trajectory`, in order."""
     changes = []
     if not np.array_equal(previous[0][:target_size], key[0][:target_size]):
         changes.append("target")
@@ -195,7 +195,7 @@ class StabilityCertificate:
         # stamp and velocity are)
         s = self.controller.settings
         key = (par[n:par.size - self.controller.nlp.slot_layout.size].copy(), self.controller.regions,
-               s.predict_obstacles, s.region_margin)
+               s.predict_obstacles, s.region_margin, self.controller.mismatch_margin)
         changed = what_changed(self._previous.key, key, time, len(y_t)) if self._previous is not None else ""
         previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:

@@ -2,7 +2,8 @@
 
 `NmpcController.step` reads as the sample does (docs/design.md, "The sample"):
 
-* prepare: validate x and y_t, track y_t's nearest reachable output (core/nlp/projection.py), pack the
+* prepare: validate x and y_t, measure the last sample's one-step prediction error and widen the obstacles
+  by it (core/sample/mismatch.py), track y_t's nearest reachable output (core/nlp/projection.py), pack the
   parameters, set the deadline of the sample's solver calls (core/nlp/worker.py);
 * search (core/nlp/search.py, one budget rule and one ranking): the regular starts (the shifted plan;
   a cold start's resting plan, straight line and reference; a budget-cut iterate continued; the
@@ -14,7 +15,7 @@
 * guard: a plan that still predicts penetration gives way to the least-violating input.
 
 What carries over between samples is one SampleMemory (core/sample/memory.py); what the search did is the
-result's SearchReport.
+result's SearchReport. Run-time changes (regions, margins, settings) are core/sample/runtime_changes.py.
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..config.settings import RUNTIME_FIELDS, ControllerSettings
-from ..errors import ConfigError, InputError
+from ..config.settings import ControllerSettings
+from ..errors import InputError
 from ..nlp.projection import TargetProjection
 from ..nlp.search import VIOLATION_TOLERANCE, Candidate, SearchReport, Start, search
 from ..nlp.stagewise import COLD_START_ITERATIONS, make_nlp
@@ -39,6 +40,7 @@ from .candidates import EscapeGuesses, escape_admission, guess_batch, guess_star
 from .fallback import FallbackSelector
 from .memory import Sample, SampleMemory
 from .passage import Passage
+from .runtime_changes import RuntimeChanges
 from .status import StepStatus
 from .step_result import Plan, StepResult, validate_vector
 from .warm_start import initial_guess
@@ -57,7 +59,7 @@ TIME_BOUND_MARGIN = 0.05
 COLD_START_TIME_FACTOR = 10.0
 
 
-class NmpcController:
+class NmpcController(RuntimeChanges):
     """Avoidance-aware tracking NMPC (simplified scheme, paper section IV).
 
     The NLP is built once in the constructor; `step` only packs parameters and solves.
@@ -86,6 +88,10 @@ class NmpcController:
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
         self.memory = SampleMemory()
+        #: the mismatch margin (core/sample/mismatch.py) the regions are packed with, and the model's one-sample map
+        self.mismatch_margin = 0.0
+        self._one_step = self.model.discrete(self.settings.sample_time, self.settings.discretization,
+                                             self.settings.integration_steps)
         self.escape = EscapeGuesses(self.cold_nlp or self.nlp, self.model, self.settings)
         # the passage mode's NLP: the same problem with the longer horizon, built here once
         long_nlp = None
@@ -131,60 +137,6 @@ class NmpcController:
         """The regular or the passage NLP whose horizon is `horizon` (None if neither)."""
         return next((nlp for nlp in (self.nlp, self.passage.nlp) if nlp is not None and nlp.layout.horizon == horizon),
                     None)
-
-    # -- run-time changes (never rebuild) ---------------------------------------------------
-    @property
-    def regions(self) -> tuple[Region, ...]:
-        """The obstacle regions as set (the plan avoids them inflated by `region_margin`)."""
-        return self._given
-
-    def set_regions(self, regions: Sequence[Region], margin: float | None = None) -> None:
-        """Replace the obstacle regions, planned around inflated by `margin` (default region_margin);
-        RegionError if they do not fit the slots, nothing changes then."""
-        m = self.settings.region_margin if margin is None else margin
-        given = tuple(regions)
-        planned = tuple(r.inflated(m) if isinstance(r, Region) else r for r in given)
-        slots = self.nlp.slot_layout.pack(list(planned), self.nlp.output_frame_available, predict=False)
-        self._given, self._regions, self._slots = given, planned, slots
-        self.tiered.set_regions(self._regions)
-        self._moving = any(r.moving for r in self._regions)
-
-    def slot_values(self, time: float | None = None) -> np.ndarray:
-        """The obstacle slot parameters of a sample whose x(0) is valid at `time` (s): with `predict_obstacles`
-        on, moving regions placed where they are then and predicted stage by stage (time None: each pose valid
-        at x(0)); off, each stays where it was at its stamp. Static regions only: the slots packed once per set."""
-        if self._moving and self.settings.predict_obstacles:
-            return self.nlp.slot_layout.pack(list(self._regions), self.nlp.output_frame_available, time)
-        return self._slots
-
-    @property
-    def keep_in_active(self) -> np.ndarray:
-        return self._keep_in_active  # one flag per keep_in entry (1: penalised), see set_keep_in_active
-
-    def set_keep_in_active(self, active: Sequence[bool]) -> None:
-        """Switch the configured algebraic regions on or off (one flag per `keep_in` entry)."""
-        flags = np.asarray(active, dtype=float).ravel()
-        if flags.size != self.nlp.layout.n_keep_in:
-            raise ConfigError(f"expected {self.nlp.layout.n_keep_in} keep-in flags, got {flags.size}")
-        self._keep_in_active = flags
-
-    def checked_settings(self, **changes: float | Sequence[float]) -> ControllerSettings:
-        """The settings with run-time fields changed, validated but not applied (ConfigError says why)."""
-        structural = sorted(set(changes) - RUNTIME_FIELDS)
-        if structural:
-            raise ConfigError(f"changing {', '.join(structural)} needs a new controller (NLP rebuild)")
-        new = self.settings.replace(**changes)
-        for name, size in (("state_weights", self.model.n), ("input_weights", self.model.m)):
-            if len(getattr(new, name)) != size:
-                raise ConfigError(f"{name} needs {size} values, got {len(getattr(new, name))}")
-        return new
-
-    def update_settings(self, **changes: float | Sequence[float]) -> None:
-        """Change run-time fields (mu, kappa, weights, predict_obstacles, ...) for the next step; nothing is rebuilt."""
-        new = self.checked_settings(**changes)
-        if new.region_margin != self.settings.region_margin:
-            self.set_regions(self._given, new.region_margin)  # RegionError: nothing changes
-        self.settings = new
 
     def in_solve_domain(self, x: np.ndarray) -> bool:
         """Whether the state x [n] lies within `solve_domain_margin` box widths of the state box (each
@@ -243,6 +195,8 @@ class NmpcController:
             result = self._guard(sample, best, self._apply(sample, best, report))
         result.search, result.target = report, sample.y_t
         result.solve_time = sample.seconds
+        self.memory.mismatch.expect(np.asarray(self._one_step(sample.x, result.u)).ravel(), result.u, time,
+                                    self.settings.sample_time)
         return result
 
     def _prepare(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None,
@@ -255,6 +209,7 @@ class NmpcController:
             raise InputError(f"time must be finite seconds, got {time}")
         if regions is not None:
             self.set_regions(regions)
+        self._track_mismatch(x, time)
         y_t = self.project_target(y_t)
         self.tiered.set_time(time, self.settings.predict_obstacles)
         budget = self.sample_budget()

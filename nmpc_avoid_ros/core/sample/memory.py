@@ -4,11 +4,12 @@
 from __future__ import annotations
 
 import time as clock
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..nlp.search import Candidate
+from .mismatch import MismatchMargin
 from .step_result import Plan
 
 
@@ -28,6 +29,7 @@ class SampleMemory:
     passage: in the passage mode (the plan is the long NLP's, core/sample/passage.py).
     passage_due: the short escape found nothing: try the long NLP on the next stalled sample.
     passage_next: with guesses per sample, the index of the next passage guess to solve.
+    mismatch: the one-step prediction errors measured and the margin they add (core/sample/mismatch.py).
     """
 
     plan: Plan | None = None
@@ -39,6 +41,7 @@ class SampleMemory:
     passage: bool = False
     passage_due: bool = False
     passage_next: int = 0
+    mismatch: MismatchMargin = field(default_factory=MismatchMargin)
 
 
 @dataclass
