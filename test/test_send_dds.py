@@ -83,7 +83,8 @@ def test_the_readme_sequence_through_send_arrives_and_the_live_loop_keeps_the_el
     probe.node.create_subscription(Float64MultiArray, "state", lambda m: states.append(list(m.data)), STREAM_QOS)
     probe.node.create_subscription(
         DiagnosticArray, "/diagnostics",
-        lambda m: diags.extend({kv.key: kv.value for kv in s.values} for s in m.status if "controller" in s.name),
+        lambda m: diags.extend({"message": s.message, **{kv.key: kv.value for kv in s.values}} for s in m.status
+                               if "controller" in s.name),
         STREAM_QOS)
     for name, proc in (("recorder", recorder), ("controller", ctrl)):
         assert probe.heard_by(name, 60.0), proc.output()[-3000:]
@@ -108,6 +109,10 @@ def test_the_readme_sequence_through_send_arrives_and_the_live_loop_keeps_the_el
     assert "mu = 0.0" in send("param", "mu", "0")
     assert probe.spin_until(lambda: bool(diags) and diags[-1].get("mu") == "0" and diags[-1].get("regions") == "0",
                             5.0), diags[-1:]
+    # target changes restart the certificate's check (issue goal: no WARN or ERROR for them)
+    restarts = [d["certificate"] for d in diags if "parameters changed (target)" in d.get("certificate", "")]
+    assert len(restarts) >= 1 and diags[-1]["certificate_violations"] == "0", [d.get("certificate") for d in diags]
+    assert not [d for d in diags if "certificate violated" in d.get("message", "")]
     assert recorder.stop() == 0
     for proc in (ctrl, plant):
         assert proc.stop() == 0

@@ -289,7 +289,8 @@ def _spin_until(executor: Any, done: Any, timeout: float) -> bool:
 
 
 def node_name(node: Any, relative: str) -> str:
-    """The fully qualified name of node `relative` (relative to `node`'s namespace, or absolute)."""
+    """The fully qualified name of node `relative` (relative to `node`'s namespace, or absolute): rclpy
+    resolves topic and service names only, so one of its services is resolved and cut back to the node."""
     return node.resolve_service_name(f"{relative}/_").rsplit("/", 1)[0]
 
 
@@ -335,8 +336,8 @@ def set_parameter(node: Any, executor: Any, target_node: str, name: str, values:
     from rclpy.parameter_client import AsyncParameterClient
 
     client = AsyncParameterClient(node, target_node)
-    service = node.resolve_service_name(f"{target_node}/set_parameters")
-    remote = service.rsplit("/", 1)[0]
+    remote = node_name(node, target_node)
+    service = f"{remote}/set_parameters"
     if not client.wait_for_services(timeout_sec=timeout):
         raise SendError(f"no parameter service {service} after {timeout:.1f} s (is the controller running?)")
     future = client.describe_parameters([name])
