@@ -32,16 +32,15 @@ import numpy as np
 from ..config.settings import ControllerSettings
 from ..errors import ConfigError
 from ..problem.models import Model, make_model
+from .between import between_samples, worst_of
 from .tracking import (
     SLACK_REGULARISATION,
     Buffered,
     NlpBase,
     TrackingNlp,
-    between_samples,
     check_sizes,
     depth_function,
     problem_parts,
-    worst_of,
 )
 
 #: iteration budget of a cold start (no previous plan), also in core/sample/controller.py
@@ -172,7 +171,7 @@ class StagewiseNlp(NlpBase):
                 slack_vars.append(s_a)
                 slack_depths.append(depth_a)
             depth = parts.avoidance(X[k], U[k], k * s.sample_time)
-            between = between_samples(parts, points, U[k], k * s.sample_time, s.sample_time)
+            between = between_samples(parts, X[k], points, U[k], k * s.sample_time, s.sample_time)
             for rows in (depth, *between):  # one slack per region bounds g at x(k) and on the way on
                 g.append(S[k] - rows)
                 lbg += [0.0] * nd

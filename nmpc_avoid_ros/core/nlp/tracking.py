@@ -33,6 +33,7 @@ from ..errors import ConfigError
 from ..problem.expressions import parse_keep_in
 from ..problem.models import Model, make_model
 from ..problem.regions import SlotLayout
+from .between import between_samples, worst_of
 from .buffered import Buffered
 from .worker import ABANDONED, SolveWorker
 
@@ -101,6 +102,8 @@ class ProblemParts:
         avoidance: (x [n], u [m], elapsed s) -> active * g of every keep-in expression and obstacle
             slot [n_depth] (> 0 inside a region to avoid), moving obstacles taken `elapsed` s after
             x(0): stage k at k Ts, and the steady state x_a (= x(N)) at N Ts.
+        chord: (x_a [n], x_b [n], u [m], elapsed_a, elapsed_b) -> c^2 [n_depth] of the chord between two
+            sub-step states per region (ellipses; 0 for the others), core/nlp/between.py.
         hard_g: Function (x, u) -> hard inequalities g <= 0 [n_hard]; hard_uses_u per row.
         slot_layout, output_frame_available, closed_form, n_keep_in.
     """
@@ -115,6 +118,7 @@ class ProblemParts:
     keep_active: ca.SX
     slot_par: ca.SX
     avoidance: object
+    chord: object
     hard_g: ca.Function
     hard_uses_u: list[bool]
     n_hard: int
@@ -159,14 +163,25 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     slot_par = ca.SX.sym("slots", slots.size)
     par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, slot_par)
 
+    def points(x, u):
+        """(state-plane point, output-plane point or None) of x under u."""
+        return x[list(s.plane)], mdl.output(x, u)[list(s.output_plane)] if output_frame_available else None
+
     def avoidance(x, u, elapsed: float = 0.0):
         """The region functions g at one point (keep-in expressions, then obstacle slots), with
         moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts)."""
-        state_point = x[list(s.plane)]
-        output_point = mdl.output(x, u)[list(s.output_plane)] if output_frame_available else None
-        return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, state_point, output_point, elapsed))
+        return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, *points(x, u), elapsed))
 
-    return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, hard_g, hard_uses_u,
+    def chord(xa, xb, u, elapsed_a: float, elapsed_b: float):
+        """Per region, c^2 of the chord x_a -> x_b under u (core/nlp/between.py): for an ellipse its squared
+        normalised length; for a keep-in expression 4 (g(mid) - (g(x_a) + g(x_b)) / 2), its bend, exact for a
+        quadratic g, through a smooth positive part (>= it, within CHORD_SMOOTHING); 0 for polygons."""
+        bend = 4 * (keep_g((xa + xb) / 2, u) - (keep_g(xa, u) + keep_g(xb, u)) / 2)
+        bend = (bend + ca.sqrt(bend**2 + CHORD_SMOOTHING**2)) / 2
+        return ca.vertcat(keep_active * bend, slots.chords(slot_par, points(xa, u), points(xb, u), elapsed_a,
+                                                           elapsed_b))
+
+    return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, chord, hard_g, hard_uses_u,
                         len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
                         output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None)
 
@@ -176,22 +191,6 @@ def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
     avoid), moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts; steady state: N Ts)."""
     xs, us, elapsed = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m), ca.SX.sym("elapsed")
     return ca.Function("region_depth", [xs, us, parts.par, elapsed], [parts.avoidance(xs, us, elapsed)])
-
-
-def between_samples(parts: ProblemParts, points: ca.SX, u: ca.SX, start: float, sample_time: float) -> list[ca.SX]:
-    """The region functions g [n_depth] at the sub-step states strictly between two samples.
-
-    points [n, M]: Model.discrete_path from x(k) under u(k) (its last column is x(k+1), checked at
-    its own stage); start: the time of x(k) after x(0), s. Empty for M = 1 (the paper)."""
-    steps = points.size2()
-    return [parts.avoidance(points[:, i], u, start + (i + 1) * sample_time / steps) for i in range(steps - 1)]
-
-
-def worst_of(depth: ca.SX, between: list[ca.SX]) -> ca.SX:
-    """Elementwise max of a stage's g at x(k) and at its sub-step states: the value its slack takes."""
-    for extra in between:
-        depth = ca.fmax(depth, extra)
-    return depth
 
 
 class NlpBase:
@@ -357,7 +356,7 @@ class TrackingNlp(NlpBase):
             du = U[:, j] - u_a
             tracking += ca.dot(q * dx, dx) + ca.dot(r * du, du)
             depth.append(avoidance(states[j], U[:, j], j * ts))
-            between.append(between_samples(parts, points, U[:, j], j * ts, ts))
+            between.append(between_samples(parts, states[j], points, U[:, j], j * ts, ts))
             if hard:
                 rows = [i for i in hard if j > 0 or hard_uses_u[i]]
                 if rows:
@@ -426,6 +425,9 @@ class TrackingNlp(NlpBase):
         self._slack_index = np.arange(layout.n_w - layout.n_slack, layout.n_w)
         self.region_depth = depth_function(parts, mdl)
 
+
+#: smoothing of the positive part of a keep-in chord's bend (core/nlp/between.py), in g units
+CHORD_SMOOTHING = 1e-6
 
 #: weight of the slacks' own regularisation in the stage-wise paths (mu = 0 leaves them free
 #: otherwise, a flat direction); it only pins s = max(0, g)

@@ -318,6 +318,20 @@ def ellipse_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX, e
     return slot[0] * ellipse_g(point, slot)
 
 
+def ellipse_chord_sq(a_state: ca.SX, a_output: ca.SX | None, b_state: ca.SX, b_output: ca.SX | None, slot: ca.SX,
+                     elapsed_a: float, elapsed_b: float) -> ca.SX:
+    """active * c^2 of one ellipse slot: c the length of the chord from a (at `elapsed_a` s after x(0)) to b,
+    measured in the ellipse's own normalised coordinates (where it is the unit disk). g is a concave quadratic
+    there, so along the chord g <= (1 - t) g(a) + t g(b) + t (1 - t) c^2 (core/nlp/between.py uses it)."""
+    motion = ELLIPSE_MOTION
+    a = _relative_point(_plane_point(a_state, a_output, slot), slot[motion:motion + 2], slot[motion + 2], elapsed_a)
+    b = _relative_point(_plane_point(b_state, b_output, slot), slot[motion:motion + 2], slot[motion + 2], elapsed_b)
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    ex = (slot[6] * dx + slot[7] * dy) * slot[4]
+    ey = (-slot[7] * dx + slot[6] * dy) * slot[5]
+    return slot[0] * (ex**2 + ey**2)
+
+
 def polygon_depth(state_point: ca.MX, output_point: ca.MX | None, slot: ca.MX, max_vertices: int,
                   elapsed: float = 0.0) -> ca.MX:
     """active * depth of one polygon slot, depth = min over edges of b - n . p (> 0 inside), at the stage `elapsed`."""
@@ -378,6 +392,13 @@ class SlotLayout:
         for i, poly in enumerate(polygons):
             values[base + i * width: base + (i + 1) * width] = poly.slot_values(self.max_polygon_vertices, now, predict)
         return values
+
+    def chords(self, slots: ca.SX, a: tuple, b: tuple, elapsed_a: float, elapsed_b: float) -> ca.SX:
+        """active * c^2 of every ellipse slot for the chord from a to b ((state point, output point or None)
+        each; see ellipse_chord_sq), then 0 for every polygon slot [n_slots]."""
+        terms = [ellipse_chord_sq(*a, *b, slots[i * ELLIPSE_SLOT_SIZE:(i + 1) * ELLIPSE_SLOT_SIZE], elapsed_a,
+                                  elapsed_b) for i in range(self.max_ellipses)]
+        return ca.vertcat(*terms, ca.SX.zeros(self.max_polygons))
 
     def depths(self, slots: ca.MX, state_point: ca.MX, output_point: ca.MX | None, elapsed: float = 0.0) -> ca.MX:
         """active * g of every slot at one point [n_slots], at the stage `elapsed` s after x(0).
