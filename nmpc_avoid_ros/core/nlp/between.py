@@ -15,8 +15,10 @@ x(k+1) in the next stage's row, so that end holds for max(s_k, s_k+1)). Each sub
 carries c^2 / 4 of a chord to another sub-step state and the whole c^2 of a chord to x(k) or x(k+1):
 with the plan's slacks at zero, every chord between its sub-step states is clear of every ellipse
 (the real motion is not quite a chord; its bend at M = 8 is what region_margin covers). A keep-in
-expression g gets the same terms with c^2 = 4 (g(mid) - (g(a) + g(b)) / 2) (its positive part), which is
-the chord's bend exactly for a quadratic g such as |x1 x2| <= 2, an estimate otherwise. Polygons keep
+expression g quadratic in x (Hessian H) gets the same terms with c^2 = lambda_max(-H) / 2 |b - a|^2, an
+upper bound of its bend -(b - a)' H (b - a) / 2 (|x1 x2| <= 2: |b - a|^2 / 2; a convex g such as a
+speed limit: 0); a non-quadratic one keeps its point rows. Every term is a smooth quadratic of the
+states (a positive part of the exact bend would have a kink at rest, which stalled the solver). Polygons keep
 the point rows (a chord may cut a corner by its sagitta; region_margin mitres them). M = 1 adds
 nothing: the paper's NLP row for row.
 """

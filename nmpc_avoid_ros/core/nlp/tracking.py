@@ -172,18 +172,30 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
         moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts)."""
         return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, *points(x, u), elapsed))
 
+    bends = keep_in_bends([k.g for k in keep_in], xs, us)
+
     def chord(xa, xb, u, elapsed_a: float, elapsed_b: float):
         """Per region, c^2 of the chord x_a -> x_b under u (core/nlp/between.py): for an ellipse its squared
-        normalised length; for a keep-in expression 4 (g(mid) - (g(x_a) + g(x_b)) / 2), its bend, exact for a
-        quadratic g, through a smooth positive part (>= it, within CHORD_SMOOTHING); 0 for polygons."""
-        bend = 4 * (keep_g((xa + xb) / 2, u) - (keep_g(xa, u) + keep_g(xb, u)) / 2)
-        bend = (bend + ca.sqrt(bend**2 + CHORD_SMOOTHING**2)) / 2
-        return ca.vertcat(keep_active * bend, slots.chords(slot_par, points(xa, u), points(xb, u), elapsed_a,
-                                                           elapsed_b))
+        normalised length, for a keep-in expression `keep_in_bends` |x_b - x_a|^2, 0 for polygons."""
+        d = xb - xa
+        return ca.vertcat(keep_active * bends * ca.dot(d, d),
+                          slots.chords(slot_par, points(xa, u), points(xb, u), elapsed_a, elapsed_b))
 
     return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, chord, hard_g, hard_uses_u,
                         len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
                         output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None)
+
+
+def keep_in_bends(expressions: list[ca.SX], x: ca.SX, u: ca.SX) -> np.ndarray:
+    """Per keep-in expression g(x, u), the largest b with g along a chord <= (1 - t) g(a) + t g(b) + t (1 - t)
+    b |b - a|^2 (core/nlp/between.py): for a quadratic g, max(0, largest eigenvalue of -H / 2), H its constant
+    Hessian in x (|x1 x2| <= 2: 1/2; a convex g: 0); 0 for an expression that is not quadratic in x."""
+    bends = np.zeros(len(expressions))
+    for i, g in enumerate(expressions):
+        hessian = ca.hessian(g, x)[0]
+        if not ca.depends_on(hessian, ca.vertcat(x, u)):
+            bends[i] = max(0.0, float(np.max(np.linalg.eigvalsh(-np.asarray(ca.DM(hessian)))))) / 2
+    return bends
 
 
 def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
@@ -425,9 +437,6 @@ class TrackingNlp(NlpBase):
         self._slack_index = np.arange(layout.n_w - layout.n_slack, layout.n_w)
         self.region_depth = depth_function(parts, mdl)
 
-
-#: smoothing of the positive part of a keep-in chord's bend (core/nlp/between.py), in g units
-CHORD_SMOOTHING = 1e-6
 
 #: weight of the slacks' own regularisation in the stage-wise paths (mu = 0 leaves them free
 #: otherwise, a flat direction); it only pins s = max(0, g)
