@@ -33,7 +33,7 @@ from ..errors import ConfigError
 from ..problem.expressions import parse_keep_in
 from ..problem.models import Model, make_model
 from ..problem.regions import SlotLayout
-from .between import between_samples, worst_of
+from .between import between_samples, keep_in_bends, worst_of
 from .buffered import Buffered
 from .worker import ABANDONED, SolveWorker
 
@@ -184,18 +184,6 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, chord, hard_g, hard_uses_u,
                         len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
                         output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None)
-
-
-def keep_in_bends(expressions: list[ca.SX], x: ca.SX, u: ca.SX) -> np.ndarray:
-    """Per keep-in expression g(x, u), the largest b with g along a chord <= (1 - t) g(a) + t g(b) + t (1 - t)
-    b |b - a|^2 (core/nlp/between.py): for a quadratic g, max(0, largest eigenvalue of -H / 2), H its constant
-    Hessian in x (|x1 x2| <= 2: 1/2; a convex g: 0); 0 for an expression that is not quadratic in x."""
-    bends = np.zeros(len(expressions))
-    for i, g in enumerate(expressions):
-        hessian = ca.hessian(g, x)[0]
-        if not ca.depends_on(hessian, ca.vertcat(x, u)):
-            bends[i] = max(0.0, float(np.max(np.linalg.eigvalsh(-np.asarray(ca.DM(hessian)))))) / 2
-    return bends
 
 
 def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
