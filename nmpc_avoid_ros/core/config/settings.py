@@ -82,6 +82,11 @@ class ControllerSettings:
                                                "e.g. 'x1 + x2 <= 3'")
     keep_in: tuple[str, ...] = setting(("x1*x2 - 2 <= 0", "-x1*x2 - 2 <= 0"),
                                        "penalised regions to stay in, e.g. 'x1*x2 - 2 <= 0' (penalty mu * max(0, g)^2)")
+    keep_in_margin: float = setting(
+        0.0, "the keep-in expressions are planned as g + keep_in_margin <= 0, in their own units: a plan accepted "
+             "as clear (predicted g up to the penetration tolerance 1e-3, e.g. a budget-cut iterate) then keeps the "
+             "real g <= 0 at its states, sub-step states and chords (docs/design.md, 'Between the samples'); "
+             "0 as in the paper", low=0.0, high=1.0e3)
     use_closed_form_steady_state: bool = setting(
         True, "use the model's g_x, g_u; false imposes the equilibrium as constraints (eq. 8e-8f)")
     plane: tuple[int, ...] = setting((0, 1), "the two state indices that 'state'-frame obstacle markers map to",

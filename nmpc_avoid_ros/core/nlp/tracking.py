@@ -170,7 +170,8 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     def avoidance(x, u, elapsed: float = 0.0):
         """The region functions g at one point (keep-in expressions, then obstacle slots), with
         moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts)."""
-        return ca.vertcat(keep_active * keep_g(x, u), slots.depths(slot_par, *points(x, u), elapsed))
+        return ca.vertcat(keep_active * (keep_g(x, u) + s.keep_in_margin),
+                          slots.depths(slot_par, *points(x, u), elapsed))
 
     bends = keep_in_bends([k.g for k in keep_in], xs, us)
 
