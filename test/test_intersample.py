@@ -128,3 +128,24 @@ def test_a_campaign_scene_with_a_thin_ellipse_is_clear_between_the_samples() -> 
     between = clearance_between_samples(settings, make_model("van_der_pol"), run.x[2:], run.u[2:], run.regions[2:])
     assert between["min_clearance_obstacles"] >= -BOUND
     assert between["max_penetration_keep_in"] <= BOUND
+
+
+def test_keep_in_margin_plans_the_keep_in_set_tightened_by_it() -> None:
+    """keep_in_margin: the paper's loop (Euler plant: the prediction is exact) presses against |x1 x2| = 2;
+    with the margin its states ride that much inside (the penalty's own optimum up to ~3e-4 beyond)."""
+    from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
+    from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+    from nmpc_avoid_ros.core.sample.controller import NmpcController
+
+    params = load_params_file(ROOT / "config" / "van_der_pol.yaml").section("controller")
+    settings = ControllerSettings.from_params(params).replace(codegen=False)
+    worst = {}
+    for margin in (0.0, 0.05):
+        run = run_closed_loop(NmpcController(settings.replace(keep_in_margin=margin)), [-5.0, 0.0], [5.0], 30,
+                              "euler")
+        worst[margin] = float(np.max(np.abs(run.x[:, 0] * run.x[:, 1])))
+        assert abs(run.x[-1, 0] - 5.0) < 0.2  # still on its way to the target
+    assert worst[0.0] > 2.0 - 1e-3
+    assert 2.0 - 0.05 - 0.01 < worst[0.05] <= 2.0 - 0.05 + 1e-3
+    with pytest.raises(ConfigError, match="keep_in_margin"):
+        settings.replace(keep_in_margin=-0.1)
