@@ -89,9 +89,18 @@ def test_the_readme_sequence_through_send_arrives_and_the_live_loop_keeps_the_el
     for name, proc in (("recorder", recorder), ("controller", ctrl)):
         assert probe.heard_by(name, 60.0), proc.output()[-3000:]
 
+    def recorder_listens(topic: str) -> bool:
+        return any(i.node_name == "recorder" for i in probe.node.get_subscriptions_info_by_topic(topic))
+
+    # the recorder subscribes to a topic once the graph shows its type (here: the controller's subscription);
+    # a latched message sent before that is gone for it once `send` exits
+    assert probe.spin_until(lambda: recorder_listens("/target") and recorder_listens("/obstacles"), 30.0), \
+        recorder.output()[-3000:]
+
     def send(*args: str) -> str:
         proc, _ = run_send(env, *args)
         assert proc.returncode == 0, (args, proc.stderr, ctrl.output()[-2000:])
+        assert "may not get this message" not in proc.stderr, (args, proc.stderr)  # every listed reader matched
         return proc.stdout
 
     def settle_at(x1: float, within: float) -> None:

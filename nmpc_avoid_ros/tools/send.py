@@ -18,9 +18,10 @@ the old one.
 
 A message is published once on the latched QoS the package's publishers use (reliable, transient
 local, depth 1) after a subscription of the controller (`--node`, default `controller`) matched,
-and every other subscription the graph shows (a recorder's; up to GRAPH_GRACE s more), and `send`
-returns only when every matched reader acknowledged it, so the process may exit at once without
-losing it (the line printed names the nodes). A parameter goes through the node's
+and every other subscription the graph shows (a recorder's), with the graph unchanged for
+GRAPH_SETTLE s (up to GRAPH_GRACE s more); `send` returns only when every matched reader
+acknowledged it, so the process may exit at once without losing it (the line printed names the
+nodes). A parameter goes through the node's
 `<node>/set_parameters` service with the type the node declared (`mu 0` is sent as 0.0). Each wait
 is bounded by `--timeout` s.
 
@@ -44,7 +45,11 @@ PROG = "python -m nmpc_avoid_ros send"
 DEFAULT_TIMEOUT = 5.0
 #: after the controller's match: s to wait at most for the rest of the subscriptions the graph lists (a
 #: reader of incompatible QoS never matches, and must not cost the whole timeout)
-GRAPH_GRACE = 1.0
+GRAPH_GRACE = 4.0
+#: s the graph's readers and matches must stay unchanged before the message goes out: a new participant
+#: finds the others one by one, measured up to 1.1 s apart on one machine (a recorder found after the
+#: controller missed messages in test/test_send_dds.py with 0 and with 0.5 s)
+GRAPH_SETTLE = 1.5
 #: ns of the markers `send` makes unless --ns
 DEFAULT_NS = "send"
 
@@ -318,11 +323,22 @@ def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: f
             raise SendError(f"no subscriber of {reader} on {name} after {timeout:.1f} s (is it running? --node "
                             f"names another)")
         time.sleep(0.02)
-    # every reader the graph knows of (a controller's two, a recorder's) matched; one of incompatible QoS
-    # never matches and must not cost the whole timeout
+    # every reader the graph knows of (a controller's two, a recorder's) matched, and the graph still for
+    # GRAPH_SETTLE s (this process's discovery finds the other nodes one by one); one of incompatible QoS
+    # never matches: bounded by GRAPH_GRACE
     grace = min(end, time.monotonic() + GRAPH_GRACE)
-    while publisher.get_subscription_count() < len(readers()) and time.monotonic() < grace:
+    seen, since = None, time.monotonic()
+    while (now := time.monotonic()) < grace:
+        current = (sorted(readers()), publisher.get_subscription_count())
+        if current != seen:
+            seen, since = current, now
+        elif current[1] >= len(current[0]) and now - since >= GRAPH_SETTLE:
+            break
         time.sleep(0.02)
+    listed, matched = len(readers()), publisher.get_subscription_count()
+    if matched < listed:
+        print(f"send: {name}: {matched} of the {listed} subscriptions the graph lists matched; the others may "
+              f"not get this message", file=sys.stderr)
     publisher.publish(message)
     if not publisher.wait_for_all_acked(Duration(seconds=timeout)):
         raise SendError(f"{name}: the subscribers did not acknowledge the message in {timeout:.1f} s")
