@@ -18,12 +18,16 @@ import numpy as np
 
 from ..core.config.settings import ControllerSettings
 from ..core.loop.alarm import ALARM_DEPTH
-from ..core.loop.intersample import clearance_between_samples
-from ..core.loop.metrics import max_abs_product, outputs, penetration, region_values, time_stats, tracking
+from ..core.loop.intersample import dense_run
+from ..core.loop.metrics import max_abs_product, outputs, penetration, region_values, time_stats
 from ..core.problem.models import make_model
 from ..core.problem.regions import Region
 from ..core.sample.status import StepStatus
+from .distance import nearest_region_distance
 from .mcap_io import Bag, BagError, load_bag
+from .node_parameters import node_parameters
+from .segments import segment_metrics
+from .timeline import Interface, TargetEvent, controller_interface, regions_at, target_events, targets_at, topic_named
 
 
 @dataclass
@@ -31,9 +35,9 @@ class RecordedRun:
     """The solved samples of one controller in a bag.
 
     Attributes: t [K] s since the first sample (times - times[0]); x [K, n] states solved on; u [K, m] commands;
-    y_a [K, p]; targets [K, p] (in force at each sample); regions [K] (tuples of core regions in
-    force at each sample, moving ones with their velocity and stamp); solve_ms [K]; status [K];
-    last diagnostic counters; final state [n] (the state after the last sample, if recorded);
+    y_a [K, p]; targets [K, p] (the accepted target in force at each sample, nan before any); regions [K]
+    (tuples of core regions in force at each sample, moving ones with their velocity and stamp); solve_ms [K];
+    status [K]; last diagnostic counters; final state [n] (the state after the last sample, if recorded);
     times [K]: clock time (s, the clock of the marker stamps) at which each state was valid, so
     that a moving region is evaluated where it was then (`regions_at`).
     """
@@ -64,6 +68,12 @@ class RecordedRun:
     depths: dict[str, np.ndarray] = field(default_factory=dict)
     #: the fully qualified name of the controller whose samples these are (its diagnostics' hardware_id)
     controller_node: str | None = None
+    #: log time (ns, the recorder's clock) of each sample's diagnostic [K]
+    log_times_ns: np.ndarray | None = None
+    #: every target message, accepted or refused as the controller would (bag/timeline.py)
+    target_events: list[TargetEvent] = field(default_factory=list)
+    #: the controller's interface (array or robot) and where that was read
+    interface: Interface = field(default_factory=Interface)
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -93,14 +103,6 @@ def _certificate(samples: list[dict[str, str]]) -> dict[str, np.ndarray]:
     out = {key: np.array([float(v.get(key, "nan")) for v in samples]) for key in CERTIFICATE_KEYS}
     out["violated"] = np.array([v.get("certificate", "").startswith("violated") for v in samples])
     return out
-
-
-def _topic(bag: Bag, suffix: str) -> str | None:
-    """The bag's topic named `suffix` (relative names may carry a namespace): /state, /robot1/state."""
-    for name in sorted(bag.topics):
-        if name == f"/{suffix}" or name.endswith(f"/{suffix}"):
-            return name
-    return None
 
 
 def _statuses(path: str | Path, samples: list[tuple[int, dict[str, str]]]) -> list[StepStatus]:
@@ -135,39 +137,26 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
              bag: Bag | None = None) -> RecordedRun:
     """Read a bag into a RecordedRun; BagError if it holds no solved controller sample.
 
-    `settings`: the controller's, for the obstacle speed and stamp limits its region store applied.
-    `bag`: the bag at `path` already read (load_bag), so it is not read twice.
+    `settings`: the controller's, for its model and for the obstacle capacities, speed and stamp
+    limits its region store applied (default: ControllerSettings()). `bag`: the bag at `path` already
+    read (load_bag), so it is not read twice. The targets are those the controller accepted
+    (bag/timeline.py; p from the samples' y_a); the interface comes from the controller's recorded
+    parameters (else inferred from the topics).
     """
-    from ..ros.markers import RegionStore  # duck-typed on decoded messages
-
     bag = bag if bag is not None else load_bag(path, progress_every=20000 if progress else 0)
     samples, controller_node = controller_samples(bag)
     if not samples:
         raise BagError(f"{path}: no controller samples (no /diagnostics with solve results); "
                        f"topics: {', '.join(sorted(bag.topics)) or 'none'}")
-    events: list[tuple[int, int, str, Any]] = []
-    for order, suffix in enumerate(("target", "obstacles")):
-        name = _topic(bag, suffix)
-        for stamp, msg in bag.topics.get(name, []) if name else []:
-            events.append((stamp, order, suffix, msg))
-    events.sort(key=lambda e: (e[0], e[1]))
-    limits = settings or ControllerSettings()
-    store = RegionStore(max_markers_per_message=10**6, max_speed=limits.max_obstacle_speed,
-                        max_stamp_skew=limits.max_obstacle_stamp_skew)
-    target: list[float] | None = None
-    targets, regions = [], []
-    cursor = 0
-    for stamp, _ in samples:
-        while cursor < len(events) and events[cursor][0] <= stamp:
-            _, _, kind, msg = events[cursor]
-            if kind == "target":
-                target = [float(v) for v in msg.data]
-            else:
-                store.apply(msg, events[cursor][0] * 1e-9)
-            cursor += 1
-        targets.append(target if target is not None else [math.nan])
-        regions.append(store.active(stamp * 1e-9))
-    state_topic = _topic(bag, "state")
+    settings = settings or ControllerSettings()
+    y_a = [_float_list(v["y_a"]) for _, v in samples]
+    p = len(y_a[0]) or make_model(settings.model).p
+    interface = controller_interface(bag, node_parameters(bag)[0].get(controller_node or ""))
+    events = target_events(bag, p, interface, controller_node)
+    stamps = [stamp for stamp, _ in samples]
+    targets = targets_at(events, stamps, p)
+    regions = regions_at(bag, settings, interface, stamps, controller_node)
+    state_topic = topic_named(bag, "state", controller_node)
     final_state = None
     if state_topic and bag.topics.get(state_topic):
         # the state after the last sample: the next different state message after the one solved on
@@ -182,13 +171,12 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
     # t from the states' times: a diagnostic is logged a solve after its state and, in lockstep on
     # simulated time, may already carry the next /clock tick (t went 0, 0.25, 0.75, 1.0, ...)
     t = times - times[0]
-    width = max(len(v) for v in targets)
     return RecordedRun(
         path=Path(path), finished=bag.finished, t=t,
         x=np.array([json.loads(v["state"]) for _, v in samples]),
         u=np.array([json.loads(v["command"]) for _, v in samples]),
-        y_a=np.array([_float_list(v["y_a"]) for _, v in samples]),
-        targets=np.array([v + [math.nan] * (width - len(v)) for v in targets]),
+        y_a=np.array(y_a),
+        targets=targets,
         regions=regions,
         solve_ms=np.array([float(v["solve_time_ms"]) for _, v in samples]),
         status=_statuses(path, samples),
@@ -204,33 +192,61 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         depths={key: np.array([float(v[key]) for _, v in samples]) for key in ("state_depth", "plan_depth")
                 if all(key in v for _, v in samples)},
         controller_node=controller_node,
+        log_times_ns=np.array(stamps, dtype=np.int64),
+        target_events=events,
+        interface=interface,
     )
 
 
 def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any]:
-    """Settling, overshoot, final error, penetration/clearance, solve-time statistics, counters
-    (definitions: core/loop/metrics.py)."""
+    """Tracking per target (segments), penetration/clearance at the samples and re-simulated between them,
+    solve-time statistics, counters (definitions: core/loop/metrics.py, bag/segments.py).
+
+    The top-level settling_step / settling_time are the sample (and s since the first) from which the
+    output stays at the last target; overshoot, overshoot_note and final_error the last segment's (a
+    run with one target: its step from the start). The flat penetration and clearance keys are those
+    of the states the samples solved on; `between_samples` the model re-simulated from each sample
+    under its command (core/loop/intersample.py). The recorded plant states, the truth, are
+    bag/truth.py's (`analyze` reports them beside these)."""
     model = make_model(settings.model)
     xs = run.states_with_final
     y = outputs(model, xs, run.u)
+    accepted = [e for e in run.target_events if e.accepted]
     target = run.targets[-1]
     metrics: dict[str, Any] = {"bag": str(run.path), "finished": run.finished, "samples": len(run.x),
-                               "target": target.tolist()}
-    if np.all(np.isfinite(target)):
-        metrics.update(tracking(y, target, settings.sample_time))
+                               "model": model.name,
+                               "target": target.tolist() if np.all(np.isfinite(target)) else None,
+                               "targets_accepted": len(accepted),
+                               "targets_refused": [{"time_ns": e.time_ns, "topic": e.topic, "reason": e.reason}
+                                                   for e in run.target_events if not e.accepted],
+                               "settling_step": None, "settling_time": None, "final_error": None,
+                               "overshoot": None, "overshoot_note": "no target recorded"}
+    segments = segment_metrics(y, run.targets, run.t, settings.sample_time)
+    last = segments[-1]
+    if last["target"] is not None:
+        metrics.update({k: last[k] for k in ("final_error", "overshoot", "overshoot_note")})
+        metrics["settling_step"] = last["settled_at_step"]
+        metrics["settling_time"] = None if last["settled_at_step"] is None else \
+            float(last["settled_at_step"] * settings.sample_time)
+    metrics["segments"] = segments
     # moving regions where they were at each state's time (the final state one sample later)
-    pen = penetration(settings, model, xs, run.u, [run.regions_at(k, settings.sample_time) for k in range(len(xs))], y)
+    regions_then = [run.regions_at(k, settings.sample_time) for k in range(len(xs))]
+    pen = penetration(settings, model, xs, run.u, regions_then, y)
     for key in ("max_penetration", "min_clearance", "max_penetration_keep_in", "max_penetration_obstacles",
                 "min_clearance_obstacles"):
         metrics[key] = pen[key]
+    metrics["min_obstacle_distance"] = _min_distance(settings, xs, y, regions_then)
     # the continuous motion under each recorded command, 10 points per sample (core/loop/intersample.py)
-    between = clearance_between_samples(settings, model, xs, run.u, run.regions, run.times)
+    dense, held, dense_regions = dense_run(settings, model, xs, run.u, run.regions, run.times)
+    between = penetration(settings, model, dense, held, dense_regions)
     metrics["between_samples"] = {key: between[key] for key in ("max_penetration", "min_clearance",
                                                                  "min_clearance_obstacles")}
+    metrics["between_samples"]["min_obstacle_distance"] = _min_distance(settings, dense, outputs(model, dense, held),
+                                                                        dense_regions)
     # samples the controller itself reported inside a region or planning to enter one (WARN)
     metrics["alarm_samples"] = (int(np.sum((run.depths["state_depth"] > ALARM_DEPTH)
                                            | (run.depths["plan_depth"] > ALARM_DEPTH))) if run.depths else None)
-    if model.n >= 2:
+    if model.name == "van_der_pol":  # the paper's energy-rate measure
         metrics["max_abs_x1x2"] = max_abs_product(xs)
     metrics["solve_ms"] = time_stats(run.solve_ms)
     metrics["deadline_overruns"] = int(np.sum(run.solve_ms > settings.sample_time * 1e3))
@@ -242,6 +258,13 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
     metrics["certificate_violations"] = int(np.sum(cert["violated"])) if cert else None
     metrics["certificate_checked"] = int(np.sum(np.isfinite(cert["decrease"]))) if cert else None
     return metrics
+
+
+def _min_distance(settings: ControllerSettings, x: np.ndarray, y: np.ndarray,
+                  regions: Sequence[Sequence[Region]]) -> float | None:
+    """The smallest signed Euclidean distance to a region (plane units, bag/distance.py; None without regions)."""
+    nearest = float(np.min(nearest_region_distance(settings.plane, settings.output_plane, x, y, regions)))
+    return nearest if math.isfinite(nearest) else None
 
 
 def union_regions(runs: Sequence[RecordedRun]) -> list[Region]:

@@ -18,7 +18,7 @@ from matplotlib.patches import Ellipse as EllipsePatch  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
 from ..core.config.settings import ControllerSettings  # noqa: E402
-from ..core.problem.models import make_model  # noqa: E402
+from ..core.problem.models import Model, make_model  # noqa: E402
 from ..core.problem.regions import Ellipse, Polygon, Region  # noqa: E402
 
 COLORS = ("black", "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
@@ -29,7 +29,8 @@ class Trace:
     """One run: times t [K+1] s, states x [K+1, n], inputs u [K, m], artificial outputs y_a [K, p].
 
     regions: static regions; snapshots: (t s, state [n], moving regions at t) to draw the moving
-    obstacles where they were at a few sample times, beside the state at that time.
+    obstacles where they were at a few sample times, beside the state at that time; targets [K, p]:
+    the target in force at each sample (nan where none), drawn as a step where each held.
     """
 
     label: str
@@ -39,6 +40,31 @@ class Trace:
     y_a: np.ndarray | None = None
     regions: Sequence[Region] = field(default_factory=tuple)
     snapshots: Sequence[tuple[float, np.ndarray, Sequence[Region]]] = field(default_factory=tuple)
+    targets: np.ndarray | None = None
+
+
+def output_rows(model: Model) -> list[int | None]:
+    """For each output of the model, the state it equals (y_j = x_i: the target is drawn on x_i's row), else None."""
+    rng = np.random.default_rng(0)
+    xs, us = rng.normal(size=(2, model.n)), rng.normal(size=(2, model.m))
+    ys = [np.asarray(model.output(x, u), float).ravel() for x, u in zip(xs, us)]
+    rows: list[int | None] = []
+    for j in range(model.p):
+        rows.append(next((i for i in range(model.n) if all(y[j] == x[i] for x, y in zip(xs, ys))), None))
+    return rows
+
+
+def draw_targets(axes: Sequence[plt.Axes], t: np.ndarray, targets: np.ndarray, rows: Sequence[int | None],
+                 label: str | None) -> None:
+    """Each target component as a dotted step on its state's row, only where it held (nan: nothing drawn);
+    the last one held to t[-1]."""
+    targets = np.atleast_2d(np.asarray(targets, float))
+    times = np.append(t[:len(targets)], t[-1]) if len(t) > len(targets) else t[:len(targets)]
+    values = np.vstack([targets, targets[-1:]])[:len(times)]
+    for j, row in enumerate(rows):
+        if row is not None and row < len(axes) and j < values.shape[1]:
+            axes[row].step(times, values[:, j], where="post", color="gray", ls=":", lw=1.2,
+                           label=label if j == 0 else None)
 
 
 def shade_product_region(ax: plt.Axes, bound: float, xlim: tuple[float, float], ylim: tuple[float, float]) -> None:
@@ -91,9 +117,9 @@ def covering_limits(traces: Sequence[Trace], xlim: tuple[float, float], ylim: tu
 
 def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float | None = 2.0,
                    target_state: Sequence[float] | None = None, xlim=(-6.0, 6.0), ylim=(-2.0, 2.0),
-                   title: str = "Phase portrait") -> Path:
-    """Fig. 1: (x1, x2) trajectories over the shaded avoided region, x0 and the target marked; the axes
-    span xlim, ylim and every trajectory (`covering_limits`)."""
+                   title: str = "Phase portrait", target_states: Sequence[Sequence[float]] = ()) -> Path:
+    """Fig. 1: (x1, x2) trajectories over the shaded avoided region, x0 and the target(s) marked (`target_state`,
+    and each of `target_states`); the axes span xlim, ylim and every trajectory (`covering_limits`)."""
     xlim, ylim = covering_limits(traces, xlim, ylim)
     fig, ax = plt.subplots(figsize=(7.5, 4.5), dpi=130)
     if product_bound is not None:
@@ -106,8 +132,10 @@ def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float 
         ax.plot(trace.x[:, 0], trace.x[:, 1], "-o", ms=2.5, lw=1.6, color=COLORS[i % len(COLORS)], label=trace.label)
     if traces:
         ax.plot(*traces[0].x[0, :2], "ks", ms=8, label="initial state")
-    if target_state is not None:
-        ax.plot(target_state[0], target_state[1], "kx", ms=10, mew=2.5, label="target steady state")
+    marks = [m for m in ([target_state] if target_state is not None else []) + list(target_states)
+             if len(m) >= 2 and np.all(np.isfinite(np.asarray(m[:2], float)))]
+    for i, mark in enumerate(marks):
+        ax.plot(mark[0], mark[1], "kx", ms=10, mew=2.5, label="target steady state" if i == 0 else None)
     ax.set_xlim(xlim)
     ax.set_ylim(ylim)
     ax.set_xlabel("x1")
@@ -124,11 +152,13 @@ def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float 
 
 def time_series(traces: Sequence[Trace], path: Path, *, state_names: Sequence[str] = ("x1", "x2"),
                 input_names: Sequence[str] = ("u",), target: Sequence[float] | None = None,
-                title: str = "Time series") -> Path:
+                title: str = "Time series", target_rows: Sequence[int | None] = (0,)) -> Path:
     """Fig. 2: each state and input over time (inputs as steps), y_a dashed on the first state.
 
     u and y_a are drawn at the first len(u) times (K of them when x has K+1 rows, i.e. when the
-    state after the last sample is known; K when it is not).
+    state after the last sample is known; K when it is not). A trace's `targets` are drawn as steps
+    where each held; `target` (one y_t for the whole run) only when no trace has them. Target component
+    j goes on state row target_rows[j] (`output_rows`; None: not drawn).
     """
     n_rows = len(state_names) + len(input_names)
     fig, axes = plt.subplots(n_rows, 1, figsize=(7.5, 2.0 * n_rows + 0.6), dpi=130, sharex=True)
@@ -143,8 +173,13 @@ def time_series(traces: Sequence[Trace], path: Path, *, state_names: Sequence[st
         for col in range(len(input_names)):
             axes[len(state_names) + col].step(trace.t[:len(trace.u)], trace.u[:, col], where="post", color=color,
                                               lw=1.6, label=trace.label)
-    if target is not None:
-        axes[0].axhline(target[0], color="gray", ls=":", lw=1.0, label="target")
+    drawn = [trace for trace in traces if trace.targets is not None and len(trace.targets)]
+    for i, trace in enumerate(drawn):
+        draw_targets(axes[:len(state_names)], trace.t, trace.targets, target_rows, "target" if i == 0 else None)
+    if not drawn and target is not None:
+        for j, row in enumerate(target_rows):
+            if row is not None and j < len(target) and np.isfinite(target[j]):
+                axes[row].axhline(target[j], color="gray", ls=":", lw=1.0, label="target" if j == 0 else None)
     for ax, name in zip(axes, [*state_names, *input_names]):
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
@@ -180,17 +215,34 @@ def value_function_plot(series: Sequence[tuple[str, np.ndarray, np.ndarray, np.n
     return path
 
 
-def run_figures(traces: Sequence[Trace], settings: ControllerSettings, target: Sequence[float], out: Path,
+def target_states(model: Model, targets: Sequence[Sequence[float]]) -> list[list[float]]:
+    """Where each distinct finite target y_t sits in the (x1, x2) plane: van der Pol's steady state [y_t, 0],
+    else the target's first two values (the robots' position)."""
+    out: list[list[float]] = []
+    for target in targets:
+        target = [float(v) for v in target]
+        if not target or not np.all(np.isfinite(target)):
+            continue
+        mark = [target[0], 0.0] if model.name == "van_der_pol" else target[:2]
+        if mark not in out:
+            out.append(mark)
+    return out
+
+
+def run_figures(traces: Sequence[Trace], settings: ControllerSettings, target: Sequence[float] | None, out: Path,
                 what: str) -> tuple[Path, Path]:
     """OUT/phase_portrait.png and OUT/time_series.png of runs of one configuration (the paper's
-    shaded region when its keep-in |x1 x2| <= 2 is configured); `what` ends the titles."""
+    shaded region when its keep-in |x1 x2| <= 2 is configured); `what` ends the titles. The targets
+    marked and drawn are the traces' `targets` where they have them, else `target` (None or nan: none)."""
     model = make_model(settings.model)
     paper_region = model.name == "van_der_pol" and any("x1*x2" in k.replace(" ", "") for k in settings.keep_in)
     lo, hi = settings.state_min, settings.state_max
-    target_state = [target[0], 0.0] if model.name == "van_der_pol" else list(target[:2])
+    held = [row for trace in traces if trace.targets is not None for row in np.atleast_2d(trace.targets)]
+    marks = target_states(model, held or ([target] if target is not None else []))
     phase = phase_portrait(traces, out / "phase_portrait.png", product_bound=2.0 if paper_region else None,
-                           target_state=target_state, xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]),
+                           target_states=marks, xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]),
                            title=f"Phase portrait {what}")
     series = time_series(traces, out / "time_series.png", state_names=model.state_names,
-                         input_names=model.input_names, target=target, title=f"States, input and y_a {what}")
+                         input_names=model.input_names, target=target, title=f"States, input and y_a {what}",
+                         target_rows=output_rows(model))
     return phase, series
