@@ -6,7 +6,7 @@ Messages are taken as serialized CDR bytes (no deserialize / re-serialize) and w
 node-clock receive time as log time (ns; sim time when use_sim_time) and the publisher's source
 timestamp as publish time. Topic types come from the ROS graph: a timer polls it and subscribes
 as soon as a wanted topic has a publisher (the `types` parameter, ``topic=pkg/msg/Type``, lets a
-topic be subscribed before any publisher exists). QoS: `latched_topics` (target, obstacles)
+topic be subscribed before any publisher exists). QoS: `latched_topics` (target, goal_pose, obstacles)
 reliable + transient local, depth 1, plus a volatile reader of depth `queue_depth` so that a volatile
 publisher's first sample (`ros2 topic pub --once`, which the controller accepts at once) is not
 lost before the graph poll sees that publisher; a sample both readers get is written once. The
@@ -58,8 +58,12 @@ from ..ros.parameters import LATCHED_QOS, ParamSpec, declare
 from .recorder_parameters import ParameterSnapshots, node_names
 from .runner import run_node
 
-DEFAULT_TOPICS = ["state", "command", "target", "obstacles", "/diagnostics", "controller/prediction",
-                  "controller/certificate", "/clock"]
+#: the controller's interfaces (array: state, command, target; robot: odom, cmd_vel, goal_pose), obstacles, and
+#: what the controller and the lockstep plant publish for the offline tools
+DEFAULT_TOPICS = ["state", "command", "target", "odom", "cmd_vel", "goal_pose", "obstacles", "/diagnostics",
+                  "controller/prediction", "controller/certificate", "/clock"]
+#: the latched inputs (transient local publishers, as the controller subscribes them)
+LATCHED_TOPICS = ["target", "goal_pose", "obstacles"]
 #: messages taken per callback beyond the one the executor delivers (fairness between topics)
 BATCH = 200
 #: topics never recorded by `topics: ["*"]` (nor is the recorder's own ~/counts)
@@ -81,7 +85,7 @@ RECORDER_SPECS = [
               ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
     ParamSpec("types", None, "topic=pkg/msg/Type entries: subscribe before a publisher exists (the graph's type "
               "wins when they differ)", ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
-    ParamSpec("latched_topics", ["target", "obstacles"], "topics subscribed transient local with depth 1 (plus a "
+    ParamSpec("latched_topics", LATCHED_TOPICS, "topics subscribed transient local with depth 1 (plus a "
               "volatile reader, so volatile publishers are recorded from their first sample)",
               ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
     ParamSpec("queue_depth", 1000, "subscription depth of the other topics, messages (a slow disk must lose "
