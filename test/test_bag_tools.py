@@ -90,15 +90,20 @@ def test_analyze_of_the_paper_bags_matches_simulate(demo_out, shipped_paper, tmp
 
         m = metrics[f"{name}.mcap"]
         assert m["settling_step"] == settling_step(offline.x[:, 0], 5.0, 0.05)
-        assert m["max_abs_x1x2"] == pytest.approx(max_abs_product(offline.x), abs=1e-9)
-        assert m["fallbacks"] == 0 and m["finished"] is True
-    assert metrics["with_avoidance.mcap"]["max_penetration"] < 1e-3
-    assert metrics["without_avoidance.mcap"]["max_penetration"] > 7
+        assert m["clearance"]["at_samples"]["max_abs_x1x2"] == pytest.approx(max_abs_product(offline.x), abs=1e-9)
+        # lockstep: the plant publishes exactly the states solved on (and the one after the last)
+        assert m["clearance"]["recorded_states"]["max_abs_x1x2"] == m["clearance"]["at_samples"]["max_abs_x1x2"]
+        assert m["fallbacks"] == 0 and m["finished"] is True and len(m["segments"]) == 1
+        assert m["config"]["closest_shipped"]["file"] == "config/van_der_pol.yaml"
+    assert metrics["with_avoidance.mcap"]["clearance"]["at_samples"]["max_penetration"] < 1e-3
+    assert metrics["without_avoidance.mcap"]["clearance"]["at_samples"]["max_penetration"] > 7
     for name in RUNS:
         m = metrics[f"{name}.mcap"]
         assert m["certificate_violations"] == 0 and m["certificate_checked"] >= 49
         # the dense check holds the samples themselves, so it sees at least what they show
-        assert m["between_samples"]["max_penetration"] >= m["max_penetration"] - 1e-12
+        clearance = m["clearance"]
+        assert clearance["resimulated_between_samples"]["max_penetration"] >= \
+            clearance["at_samples"]["max_penetration"] - 1e-12
     # the honest status: the run without avoidance plans through |x1 x2| > 2 and says so
     assert metrics["with_avoidance.mcap"]["alarm_samples"] == 0
     assert metrics["without_avoidance.mcap"]["alarm_samples"] >= 5
