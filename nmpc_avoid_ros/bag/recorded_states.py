@@ -20,6 +20,7 @@ state) falls back to the recorder's clock over the same span of diagnostics, and
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -100,12 +101,12 @@ def _anchors(stamps: np.ndarray, states: np.ndarray, run: RecordedRun) -> list[t
     out: list[tuple[int, int]] = []
     logged = run.log_times_ns if run.log_times_ns is not None else np.full(len(run.x), np.iinfo(np.int64).max)
     for k, x in enumerate(np.asarray(run.x if run.measured is None else run.measured, float)):
-        floor = out[-1][1] if out else 0
-        hits = [j for j in index.get(x.tobytes(), []) if j >= floor]
-        if not hits:
+        hits = index.get(x.tobytes(), [])
+        first = bisect.bisect_left(hits, out[-1][1] if out else 0)  # indices and stamps both ascend
+        if first == len(hits):
             continue
-        before = [j for j in hits if stamps[j] <= logged[k]]
-        out.append((k, before[-1] if before else hits[0]))
+        last = bisect.bisect_right(hits, logged[k], lo=first, key=lambda j: stamps[j]) - 1
+        out.append((k, hits[last] if last >= first else hits[first]))
     return out
 
 
