@@ -46,21 +46,33 @@ def settings(**changes) -> ControllerSettings:
     return ControllerSettings(**changes)
 
 
-def test_the_error_is_measured_in_the_plane_one_sample_after_its_prediction() -> None:
+def stay(x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """A flow under which nothing moves: the expectation's start state is what it predicts."""
+    return np.array(x, float)
+
+
+def test_the_error_is_measured_in_the_plane_against_the_plan_at_the_measurements_own_time() -> None:
     s = settings(mismatch_gain=1.0, mismatch_window=3, plane=(0, 1))
     mm = MismatchMargin()
     mm.expect(np.array([1.0, 2.0]), np.array([0.0]), 10.0, 0.5)
-    mm.measure(np.array([1.3, 2.4]), 10.5, MODEL, s, outputs_too=False)
+    mm.measure(np.array([1.3, 2.4]), 10.5, stay, MODEL, s, outputs_too=False)
     assert mm.last_error == pytest.approx(0.5) and list(mm.errors) == [pytest.approx(0.5)]
+    # the plan's state for the measurement's own instant: 0.3 s after its start, whenever that is
+    asked = []
+    mm.expect(np.array([1.0, 2.0]), np.array([0.0]), 10.0, 0.5)
+    mm.measure(np.array([1.3, 2.4]), 10.3, lambda x, u, dt: asked.append(dt) or x, MODEL, s, outputs_too=False)
+    assert asked == [pytest.approx(0.3)]
+    mm.errors.clear()
+    mm.errors.append(0.5)
     assert mm.expected is None  # used once
     # a measurement that is not the next sample's (a missed sample: 1 s later) is not compared
     mm.expect(np.array([1.0, 2.0]), np.array([0.0]), 10.5, 0.5)
-    mm.measure(np.array([9.0, 9.0]), 12.0, MODEL, s, outputs_too=False)
+    mm.measure(np.array([9.0, 9.0]), 12.0, stay, MODEL, s, outputs_too=False)
     assert math.isnan(mm.last_error) and len(mm.errors) == 1
     # the window keeps the last mismatch_window errors
     for e in (0.1, 0.2, 0.3, 0.4):
         mm.expect(np.zeros(2), np.zeros(1), None, 0.5)
-        mm.measure(np.array([e, 0.0]), None, MODEL, s, outputs_too=False)
+        mm.measure(np.array([e, 0.0]), None, stay, MODEL, s, outputs_too=False)
     assert list(mm.errors) == pytest.approx([0.2, 0.3, 0.4])
 
 
@@ -70,7 +82,7 @@ def test_the_margin_grows_at_once_shrinks_with_hysteresis_and_is_capped() -> Non
 
     def error(e: float) -> bool:
         mm.expect(np.zeros(2), np.zeros(1), None, 0.5)
-        mm.measure(np.array([e, 0.0]), None, MODEL, s, outputs_too=False)
+        mm.measure(np.array([e, 0.0]), None, stay, MODEL, s, outputs_too=False)
         return mm.update(s)
 
     assert error(0.0002) is False and mm.margin == 0.0  # 2 x 0.0002 is below the penetration tolerance

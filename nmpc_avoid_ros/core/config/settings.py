@@ -134,6 +134,11 @@ class ControllerSettings:
              "edges moved out): room for what the prediction does not see, the motion between samples and the "
              "loop's latency (docs/design.md, 'Clearance margin'); the recorded clearance is the real regions'",
         runtime=True, low=0.0)
+    input_delay: float = setting(
+        0.0, "s from the moment a command is published to the moment it acts on the plant (transport, the "
+             "actuator's own cycle). Each step predicts the measured state forward, with the model and the "
+             "command in force, by the state's age, the node's expected solve-and-publish time and this, and "
+             "plans from there (docs/design.md, 'Latency')", runtime=True, low=0.0, high=10.0)
     mismatch_gain: float = setting(
         0.0, "obstacles are planned around inflated, on top of region_margin, by this multiple of the largest "
              "one-step prediction error (plane units) measured over the last mismatch_window samples: room for "
@@ -255,6 +260,11 @@ class NodeSettings:
     odom_frame: str = setting("odom", "robot interface: the frame of odometry poses and goals (REP 105); obstacle "
                                       "markers in it are positions; everything drawn is in it")
     base_frame: str = setting("base_link", "robot interface: child_frame_id of the odometry and frame of cmd_vel")
+    latency_compensation: bool = setting(
+        True, "real time: plan from the state predicted to the moment the command acts (its age, the expected "
+              "solve-and-publish time measured over the last samples, input_delay; docs/design.md, 'Latency'); "
+              "false: from the measured state (lockstep never predicts: its plant waits for the command)",
+        runtime=True)
     deactivate_command: str = setting("zero", "the one command published when an active controller is "
                                               "deactivated or shut down", runtime=True, choices=STALE_BEHAVIORS)
 
@@ -280,9 +290,24 @@ NODE_ONLY_PARAMETERS = frozenset(NODE_SETTINGS) | {"use_sim_time"}
 SETTING_DOCS: dict[str, str] = {name: spec.description for name, spec in SETTINGS.items()}
 
 
+#: prefixes of a params file's node key that match any namespace (rcl's wildcards): the shipped files
+#: key `/**/controller`, so that `-r __ns:=/robot1` and a launch file's namespace keep their settings
+NAMESPACE_WILDCARDS = ("/**/", "/*/")
+
+
+def params_file_node(key: str) -> str:
+    """The node a params file's top-level key names, for the offline tools (which run no namespace):
+    `controller`, `/controller` and `/**/controller` all name `controller`."""
+    for wildcard in NAMESPACE_WILDCARDS:
+        if key.startswith(wildcard):
+            return key[len(wildcard):]
+    return key.lstrip("/")
+
+
 @dataclass(frozen=True)
 class ParamsFile:
-    """A ROS 2 params file: node name -> its `ros__parameters` mapping."""
+    """A ROS 2 params file: node name -> its `ros__parameters` mapping (the sections of one node, in
+    any namespace or the root one, merged in the file's order: a later key wins)."""
 
     path: Path | None
     nodes: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -312,11 +337,11 @@ def load_params_file(path: str | Path) -> ParamsFile:
     if not isinstance(data, dict):
         raise ConfigError(f"params file {p}: expected node names as top-level keys")
     nodes: dict[str, dict[str, Any]] = {}
-    for name, body in data.items():
-        name = str(name).lstrip("/")
+    for key, body in data.items():
+        name = params_file_node(str(key))
         if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
             raise ConfigError(f"params file {p}: node {name!r} needs a 'ros__parameters' mapping")
-        nodes[name] = body["ros__parameters"]
+        nodes[name] = {**nodes.get(name, {}), **body["ros__parameters"]}
     return ParamsFile(p, nodes)
 
 

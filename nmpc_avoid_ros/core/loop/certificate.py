@@ -44,6 +44,7 @@ LAYOUT = ("value_function", "decrease", "decrease_bound", "margin", "tolerance",
 
 #: where the value of V_N comes from, by step status
 COST_SOURCES = {StepStatus.OK: "optimal", StepStatus.TRUNCATED: "budget-cut iterate",
+                StepStatus.UNCONVERGED: "unconverged iterate",
                 StepStatus.FALLBACK_SHIFT: "shifted plan (fallback)",
                 StepStatus.FALLBACK_STEADY: "steady plan (fallback)",
                 StepStatus.FALLBACK_RECOVERY: "recovery plan (fallback)",

@@ -77,19 +77,18 @@ class Model:
             raise ConfigError(f"integration_steps must be a whole number >= 1, got {steps}")
         x = ca.SX.sym("x", self.n)
         u = ca.SX.sym("u", self.m)
-        f, h = self.dynamics, sample_time / int(steps)
-        points, state = [], x
-        for _ in range(int(steps)):
-            if method == "euler":
-                state = state + h * f(state, u)
-            else:
-                k1 = f(state, u)
-                k2 = f(state + h / 2 * k1, u)
-                k3 = f(state + h / 2 * k2, u)
-                k4 = f(state + h * k3, u)
-                state = state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            points.append(state)
+        points = _sub_steps(self.dynamics, x, u, sample_time / int(steps), int(steps), method)
         return ca.Function(f"{self.name}_{method}_path", [x, u], [ca.horzcat(*points)], ["x", "u"], ["points"])
+
+    def flow(self, method: str = "rk4", steps: int = 4) -> ca.Function:
+        """(x[n], u[m], dt) -> x(dt)[n]: the state dt s later under the input held, in `steps` sub-steps of
+        `method` (h = dt / steps). Predicts a measured state over the loop's latency and the state a plan
+        expected at a measurement's own time (core/sample/latency.py); at dt = Ts it equals `discrete`."""
+        if method not in DISCRETISATIONS:
+            raise ConfigError(f"discretization must be one of {DISCRETISATIONS}, got {method!r}")
+        x, u, dt = ca.SX.sym("x", self.n), ca.SX.sym("u", self.m), ca.SX.sym("dt")
+        state = _sub_steps(self.dynamics, x, u, dt / int(steps), int(steps), method)[-1]
+        return ca.Function(f"{self.name}_{method}_flow", [x, u, dt], [state], ["x", "u", "dt"], ["x_dt"])
 
     def symbol_table(self, x: ca.SX | ca.MX, u: ca.SX | ca.MX) -> dict[str, ca.SX | ca.MX]:
         """Names -> symbolic entries of x, u and y = h(x, u), for algebraic region expressions."""
@@ -99,6 +98,22 @@ class Model:
             for i, name in enumerate(names):
                 table[name] = vec[i]
         return table
+
+
+def _sub_steps(f: ca.Function, x: ca.SX, u: ca.SX, h: ca.SX | float, steps: int, method: str) -> list[ca.SX]:
+    """The states after each of `steps` sub-steps of length h of `method` (euler or rk4) from x, u held."""
+    points, state = [], x
+    for _ in range(steps):
+        if method == "euler":
+            state = state + h * f(state, u)
+        else:
+            k1 = f(state, u)
+            k2 = f(state + h / 2 * k1, u)
+            k3 = f(state + h / 2 * k2, u)
+            k4 = f(state + h * k3, u)
+            state = state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        points.append(state)
+    return points
 
 
 def _functions(name: str, n: int, m: int, xdot: Callable, out: Callable) -> tuple[ca.Function, ca.Function]:

@@ -38,6 +38,7 @@ from ..problem.models import Model
 from ..problem.regions import Region
 from .candidates import EscapeGuesses, escape_admission, guess_batch, guess_start
 from .fallback import FallbackSelector
+from .latency import LatencyPrediction
 from .memory import Sample, SampleMemory
 from .passage import Passage
 from .runtime_changes import RuntimeChanges
@@ -88,10 +89,10 @@ class NmpcController(RuntimeChanges):
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
         self.memory = SampleMemory()
-        #: the mismatch margin (core/sample/mismatch.py) the regions are packed with, and the model's one-sample map
+        #: the mismatch margin (core/sample/mismatch.py) the regions are packed with
         self.mismatch_margin = 0.0
-        self._one_step = self.model.discrete(self.settings.sample_time, self.settings.discretization,
-                                             self.settings.integration_steps)
+        #: the state predicted over the loop's latency (core/sample/latency.py), also the mismatch's reference
+        self.latency = LatencyPrediction(self.model, self.settings)
         self.escape = EscapeGuesses(self.cold_nlp or self.nlp, self.model, self.settings)
         # the passage mode's NLP: the same problem with the longer horizon, built here once
         long_nlp = None
@@ -163,27 +164,33 @@ class NmpcController(RuntimeChanges):
         """Forget everything carried between samples (the next step starts cold)."""
         self.memory = SampleMemory()
 
-    def parameters(self, x: np.ndarray, y_t: np.ndarray, time: float | None = None) -> np.ndarray:
-        """The NLP parameter vector for state x [n] measured at `time` (s) and target y_t [p] with the
-        current settings and regions (see `slot_values`)."""
+    def parameters(self, x: np.ndarray, y_t: np.ndarray, time: float | None = None,
+                   slots: np.ndarray | None = None) -> np.ndarray:
+        """The NLP parameter vector for state x [n] valid at `time` (s) and target y_t [p] with the current
+        settings and regions (see `slot_values`; `slots` replaces them, e.g. `given_slot_values`)."""
         s = self.settings
         return self.nlp.parameters(
-            x, y_t, self.slot_values(time), kappa=s.kappa, mu=s.mu, state_weights=np.asarray(s.state_weights, float),
+            x, y_t, self.slot_values(time) if slots is None else slots, kappa=s.kappa, mu=s.mu,
+            state_weights=np.asarray(s.state_weights, float),
             input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
         )
 
     # -- the sample --------------------------------------------------------------------------
     def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None,
-             time: float | None = None) -> StepResult:
+             time: float | None = None, latency: float = 0.0, command: Sequence[float] | None = None
+             ) -> StepResult:
         """Solve for the measured state x [n] and target y_t [p]; regions replace the current ones if given.
 
-        `time` (s, the clock of the regions' stamps) is when x was measured: moving regions are
-        predicted from it (see `slot_values`). Returns within `sample_budget()` + TIME_BOUND_MARGIN.
+        `time` (s, the clock of the regions' stamps) is when x was measured. The plan starts from x
+        predicted `latency` + `input_delay` s later (at most one sample; core/sample/latency.py) under
+        `command` [m], the command in force (default: the last step's u; none yet: no prediction);
+        moving regions are placed at that instant (see `slot_values`). Returns within `sample_budget()`
+        + TIME_BOUND_MARGIN.
 
         Raises InputError for a wrong-size or non-finite x or y_t and RegionError for regions that
         do not fit; the controller's state is unchanged then.
         """
-        sample = self._prepare(x, y_t, regions, time)
+        sample = self._prepare(x, y_t, regions, time, latency, command)
         report = SearchReport()
         try:
             best, last = self._search(sample, report)
@@ -194,27 +201,42 @@ class NmpcController(RuntimeChanges):
         else:
             result = self._guard(sample, best, self._apply(sample, best, report))
         result.search, result.target = report, sample.y_t
-        result.solve_time = sample.seconds
-        self.memory.mismatch.expect(np.asarray(self._one_step(sample.x, result.u)).ravel(), result.u, time,
-                                    self.settings.sample_time)
+        result.solve_time, result.delay, result.measured_state = sample.seconds, sample.delay, sample.measured
+        self.memory.mismatch.expect(sample.x, result.u, sample.time, self.settings.sample_time - sample.delay,
+                                    origin=(sample.measured, time, sample.command))
+        self.memory.command = result.u.copy()
         return result
 
+    def command_sent(self, at: float) -> None:
+        """The last step's command left at `at` (s, the clock of `time`): the plant held the previous command
+        until at + input_delay, the new one from then. The mismatch check (core/sample/mismatch.py) then
+        compares the next measurement with the plan from that instant, so a slow sample is not model error."""
+        self.memory.mismatch.acts_at(at + self.settings.input_delay, self.latency.advance)
+
     def _prepare(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None,
-                 time: float | None) -> Sample:
-        """Validate, project the target, pack the parameters and set the solver calls' deadline."""
+                 time: float | None, latency: float, command: Sequence[float] | None) -> Sample:
+        """Validate, predict x over the latency, project the target, pack the parameters and set the solver
+        calls' deadline."""
         begin = clock.perf_counter()
-        x = validate_vector("state", x, self.model.n)
+        measured = validate_vector("state", x, self.model.n)
         y_t = validate_vector("target", y_t, self.model.p)
         if time is not None and not math.isfinite(time):
             raise InputError(f"time must be finite seconds, got {time}")
+        in_force = self.memory.command if command is None else validate_vector("command", command, self.model.m)
+        delay = self.latency.delay(latency, self.settings.input_delay, in_force)
         if regions is not None:
             self.set_regions(regions)
-        self._track_mismatch(x, time)
+        self._track_mismatch(measured, time)
+        x = self.latency.advance(measured, in_force, delay) if delay > 0 else measured
+        if not np.all(np.isfinite(x)):  # the prediction overflowed (a state far outside Z): plan from x itself
+            x, delay = measured, 0.0
+        start = None if time is None else time + delay
         y_t = self.project_target(y_t)
-        self.tiered.set_time(time, self.settings.predict_obstacles)
+        self.tiered.set_time(start, self.settings.predict_obstacles)
         budget = self.sample_budget()
         self.worker.deadline = deadline = begin + SEARCH_SHARE * budget
-        return Sample(x, y_t, self.parameters(x, y_t, time), time, deadline, begin + budget, self.in_solve_domain(x))
+        return Sample(x, y_t, self.parameters(x, y_t, start), start, deadline, begin + budget, self.in_solve_domain(x),
+                      measured=measured, delay=delay, command=in_force)
 
     def _search(self, sample: Sample, report: SearchReport) -> tuple[Candidate | None, Candidate | None]:
         """The sample's search: the regular starts, then the escape or the passage guesses from the plan
@@ -351,7 +373,7 @@ class NmpcController(RuntimeChanges):
         costs = tuple(float(c[0]) for c in best.nlp.terms(best.w, sample.par))
         mem.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
         regular = sample.regular
-        status = StepStatus.OK if best.solved else StepStatus.TRUNCATED
+        status = StepStatus.OK if best.solved else StepStatus.TRUNCATED if best.budget_cut else StepStatus.UNCONVERGED
         result = self._result(mem.plan, sample.x, 0, status, regular.solver_status, regular.iterations,
                               regular.budget_cut)
         result.horizon = best.nlp.layout.horizon
@@ -361,24 +383,42 @@ class NmpcController(RuntimeChanges):
         """A plan that predicts penetration (e.g. a region placed over the current state) gives way to the
         input that predicts the least violation (FallbackSelector.check_plan), and says so. An avoidable
         penetration is overridden for at most N samples in a row, so that a plan the solver keeps
-        choosing does not hold the plant still for good."""
-        mem = self.memory
+        choosing does not hold the plant still for good. When even that input penetrates the regions as
+        planned around (inflated by the margins), the choice is made again against the regions themselves:
+        only if they cannot be avoided either is it `region_unavoidable` (else `margin_unavoidable`)."""
+        mem, H = self.memory, self.fallback.horizon
         if not (self.settings.mu > 0 and best.depth > VIOLATION_TOLERANCE):
             return result
-        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:self.fallback.horizon], sample.end)
+        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end)
+        if choice is not None and choice.unavoidable and self._given != self._regions:
+            real = self.fallback.check_plan(sample.x, self._given_parameters(sample), result.inputs[:H], sample.end)
+            sample.seconds += 0.0 if real is None else real.solve_time
+            result.margin_unavoidable = real is None or not real.unavoidable
+            if result.margin_unavoidable:
+                why = "margin unavoidable (the regions themselves are avoidable)"
+                result.fallback_reason = f"{why}; {real.reason if real else 'plan: clear of them'}"
+                sample.seconds += choice.solve_time
+                if real is None:
+                    return result
+                choice = real
         if choice is None or (not choice.unavoidable and mem.overrides >= self.nlp.layout.horizon):
             mem.overrides = 0
             return result
         result.region_unavoidable = choice.unavoidable
         result.predicted_violation = choice.violation
-        why = "region unavoidable from the current state" if choice.unavoidable else "plan predicts penetration"
-        result.fallback_reason = f"{why}; {choice.reason}"
+        if not result.margin_unavoidable:
+            why = "region unavoidable from the current state" if choice.unavoidable else "plan predicts penetration"
+            result.fallback_reason = f"{why}; {choice.reason}"
         sample.seconds += choice.solve_time
         if choice.kind != "plan":
             mem.overrides += not choice.unavoidable
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
         return result
+
+    def _given_parameters(self, sample: Sample) -> np.ndarray:
+        """The sample's parameters with the regions as given, without the margins they are planned around with."""
+        return self.parameters(sample.x, sample.y_t, sample.time, slots=self.given_slot_values(sample.time))
 
     def _fall_back(self, sample: Sample, last: Candidate | None) -> StepResult:
         """No usable plan: the candidate input predicting the least violation (core/sample/fallback.py); the plan
@@ -444,7 +484,9 @@ class NmpcController(RuntimeChanges):
         N = len(plan.inputs)
         predicted = plan.states[plan.age] if plan.age <= N else plan.x_a
         status = StepStatus.FALLBACK_SHIFT if plan.age < N else StepStatus.FALLBACK_STEADY
-        return self._result(plan, predicted, plan.age, status, "no_new_state", 0, False)
+        result = self._result(plan, predicted, plan.age, status, "no_new_state", 0, False)
+        self.memory.command = result.u.copy()
+        return result
 
     def set_safe_input(self, u: Sequence[float]) -> None:
         """The model's safe input [m], a fallback candidate (InputError if malformed or outside the input box)."""

@@ -30,6 +30,8 @@ class SampleMemory:
     passage_due: the short escape found nothing: try the long NLP on the next stalled sample.
     passage_next: with guesses per sample, the index of the next passage guess to solve.
     mismatch: the one-step prediction errors measured and the margin they add (core/sample/mismatch.py).
+    command: the last command answered [m] (a step's or `coast`'s u), in force while the next state ages
+        (core/sample/latency.py); None before the first.
     """
 
     plan: Plan | None = None
@@ -42,12 +44,14 @@ class SampleMemory:
     passage_due: bool = False
     passage_next: int = 0
     mismatch: MismatchMargin = field(default_factory=MismatchMargin)
+    command: np.ndarray | None = None
 
 
 @dataclass
 class Sample:
-    """One sample after `prepare`: state x [n], tracked target y_t [p] (projected), parameters, the
-    time of x (s, the regions' clock), the deadline of the search's solver calls and the end of the
+    """One sample after `prepare`: the state x [n] planned from (the measured one predicted `delay` s
+    ahead under `command` [m], core/sample/latency.py), tracked target y_t [p] (projected), parameters,
+    the time of x (s, the regions' clock), the deadline of the search's solver calls and the end of the
     sample's budget (time.perf_counter s: the fallback's recovery solve ends by it), whether x is in the
     solve domain; then what the search adds: its solver seconds and the regular candidate."""
 
@@ -60,6 +64,9 @@ class Sample:
     in_domain: bool
     seconds: float = 0.0
     regular: Candidate | None = None
+    measured: np.ndarray | None = None
+    delay: float = 0.0
+    command: np.ndarray | None = None
 
     def time_left(self) -> float:
         return self.deadline - clock.perf_counter()

@@ -1,7 +1,9 @@
 """The plant-model mismatch, measured online, and the margin it adds to the obstacles.
 
-Every sample predicts x(1), where the plant will be one sample later under the command it applies.
-The next sample measures it: e = |x_measured - x(1)| in the obstacle plane (the two `plane` state
+Every sample's plan starts from x(0), the state predicted for the moment its command acts
+(core/sample/latency.py), and holds u(0) from then. The next sample measures the plant at its own time t
+and compares it with the state the plan predicts for that same instant, flow(x(0), u(0), t - start):
+e = |x_measured - that| in the obstacle plane (the two `plane` state
 coordinates; with 'output'-frame regions also the two `output_plane` outputs, the larger of both).
 The margin is `mismatch_gain` times the largest e of the last `mismatch_window` samples, at most
 `max_mismatch_margin`, added to `region_margin`: the plan avoids every obstacle inflated by it.
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,18 +40,23 @@ from ..problem.models import Model
 MARGIN_HEADROOM = 1.25
 #: the margin shrinks only when its target falls below this fraction of it
 SHRINK_BELOW = 0.5
-#: a measurement counts only if it comes one sample after its prediction, within this share of Ts
+#: a measurement counts only if it comes at most (1 + this) samples after the plan's start (later: the
+#: plant may have had another command meanwhile, e.g. the late cover's)
 TIME_SLACK = 0.5
 
 
 @dataclass
 class Expectation:
-    """The prediction to check at the next sample: x(1) [n], the input applied over it [m], the
-    time (s, None offline: consecutive samples assumed) at which x(1) is due."""
+    """The plan applied now, to check at the next measurement: it starts from x [n], the state predicted
+    for `start` (s; None offline), when its first input u [m] acts; offline the next measurement comes
+    `duration` s after the start."""
 
     x: np.ndarray
     u: np.ndarray
-    due: float | None
+    start: float | None
+    duration: float
+    #: the measured state [n], its time (s) and the command [m] in force then: `acts_at` re-anchors from it
+    origin: tuple[np.ndarray, float | None, np.ndarray | None] | None = None
 
 
 @dataclass
@@ -60,22 +68,24 @@ class MismatchMargin:
     margin: float = 0.0
     last_error: float = math.nan
 
-    def measure(self, x: np.ndarray, time: float | None, model: Model, settings: ControllerSettings,
-                outputs_too: bool) -> None:
-        """Compare the measured state x [n] at `time` with the expectation (then drop it)."""
+    def measure(self, x: np.ndarray, time: float | None, advance: Callable[[np.ndarray, np.ndarray, float], np.ndarray],
+                model: Model, settings: ControllerSettings, outputs_too: bool) -> None:
+        """Compare the measured state x [n] at `time` with the state the last plan predicts for that instant
+        (`advance(x, u, dt)`: the model's flow), then drop the expectation."""
         expected, self.expected = self.expected, None
         self.last_error = math.nan
         if expected is None:
             return
-        if time is not None and expected.due is not None and \
-                abs(time - expected.due) > TIME_SLACK * settings.sample_time:
-            return  # not the sample the prediction was for (a missed or late one)
+        dt = expected.duration if time is None or expected.start is None else time - expected.start
+        if not 0.0 <= dt <= (1.0 + TIME_SLACK) * settings.sample_time:
+            return  # a measurement from before the command acted, or after a missed sample
+        predicted = advance(expected.x, expected.u, dt)
         plane = list(settings.plane)
-        error = float(np.linalg.norm(x[plane] - expected.x[plane]))
+        error = float(np.linalg.norm(x[plane] - predicted[plane]))
         if outputs_too:
             out = list(settings.output_plane)
             y = np.asarray(model.output(x, expected.u), float).ravel()
-            y_pred = np.asarray(model.output(expected.x, expected.u), float).ravel()
+            y_pred = np.asarray(model.output(predicted, expected.u), float).ravel()
             error = max(error, float(np.linalg.norm(y[out] - y_pred[out])))
         if math.isfinite(error):
             if self.errors.maxlen != settings.mismatch_window:
@@ -83,11 +93,25 @@ class MismatchMargin:
             self.errors.append(error)
             self.last_error = error
 
-    def expect(self, x_next: np.ndarray, u: np.ndarray, time: float | None, sample_time: float) -> None:
-        """The plan applied now predicts x_next [n] one sample after `time` under input u [m]."""
-        if np.all(np.isfinite(x_next)):
-            self.expected = Expectation(np.array(x_next, float), np.array(u, float),
-                                        None if time is None else time + sample_time)
+    def expect(self, x_start: np.ndarray, u: np.ndarray, start: float | None, duration: float,
+               origin: tuple[np.ndarray, float | None, np.ndarray | None] | None = None) -> None:
+        """The plan applied now starts from x_start [n] at `start` (s) under input u [m]; offline the next
+        measurement comes `duration` s later. `origin`: see Expectation."""
+        if np.all(np.isfinite(x_start)):
+            self.expected = Expectation(np.array(x_start, float), np.array(u, float), start, duration, origin)
+
+    def acts_at(self, at: float, advance: Callable[[np.ndarray, np.ndarray, float], np.ndarray]) -> None:
+        """The expected plan's command really acts from `at` (s): its start state is the measured one advanced
+        under the command in force until then (nothing known of the measurement's time: unchanged)."""
+        expected = self.expected
+        if expected is None or expected.origin is None:
+            return
+        measured, measured_at, before = expected.origin
+        if measured_at is None or not at >= measured_at:
+            return
+        x = advance(measured, before, at - measured_at) if before is not None else np.array(measured, float)
+        if np.all(np.isfinite(x)):
+            expected.x, expected.start = x, at
 
     def update(self, settings: ControllerSettings) -> bool:
         """Recompute the margin (plane units) from the window; True if it changed."""

@@ -44,6 +44,12 @@ class RuntimeChanges:
             return self.nlp.slot_layout.pack(list(self._regions), self.nlp.output_frame_available, time)
         return self._slots
 
+    def given_slot_values(self, time: float | None = None) -> np.ndarray:
+        """The slot parameters of the regions as given, without the margins (`slot_values` plans around them
+        inflated): packed on request, to tell whether a region itself or only its margin is unavoidable."""
+        return self.nlp.slot_layout.pack(list(self._given), self.nlp.output_frame_available, time,
+                                         predict=self._moving and self.settings.predict_obstacles)
+
     @property
     def keep_in_active(self) -> np.ndarray:
         return self._keep_in_active  # one flag per keep_in entry (1: penalised), see set_keep_in_active
@@ -78,7 +84,7 @@ class RuntimeChanges:
         margin changed (a region that cannot take it keeps the old one)."""
         mismatch = self.memory.mismatch
         outputs = any(r.frame == "output" for r in self._given if isinstance(r, Region))
-        mismatch.measure(x, time, self.model, self.settings, outputs)
+        mismatch.measure(x, time, self.latency.advance, self.model, self.settings, outputs)
         mismatch.update(self.settings)
         if mismatch.margin != self.mismatch_margin:
             try:

@@ -20,6 +20,9 @@ class StepStatus(StrEnum):
     OK = "ok"
     #: the iteration or time budget cut the solve; its iterate is applied because it is feasible
     TRUNCATED = "truncated"
+    #: the solver stopped without converging and without a budget cut (e.g. FATROP's line search gave up:
+    #: the result's solver_status says why); its iterate is applied because it is feasible
+    UNCONVERGED = "unconverged"
     #: no usable solve: the next input of the shifted previous plan (the paper's feasibility candidate)
     FALLBACK_SHIFT = "fallback_shift"
     #: no usable solve and the previous plan is used up: its steady input u_a

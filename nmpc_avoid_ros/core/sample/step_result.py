@@ -27,8 +27,9 @@ class StepResult:
         y_a, x_a, u_a: artificial steady output [p], state [n], input [m].
         offset_cost, avoidance_cost, tracking_cost: V_o, V_a and the stage-cost sum of the plan.
         status: what was applied (core/sample/status.py): ok (solved), truncated (budget cut, feasible
-            iterate used), fallback_shift, fallback_steady, fallback_safe or fallback_recovery
-            (see core/sample/fallback.py).
+            iterate used), unconverged (the solver stopped short on its own, e.g. a failed line search;
+            feasible iterate used; solver_status says why), fallback_shift, fallback_steady, fallback_safe
+            or fallback_recovery (see core/sample/fallback.py).
         solver_status: the solver's own return status.
         iterations: solver iterations; solve_time: wall time of the solve in s.
         budget_exhausted: True when the iteration or time budget cut the solve.
@@ -42,6 +43,10 @@ class StepResult:
             reachable output (core/nlp/projection.py); None where no sample was solved (`coast`).
         region_unavoidable: the solved plan predicts a violation beyond VIOLATION_TOLERANCE (a
             region cannot be avoided from this state): the least-violating input was applied.
+        margin_unavoidable: every candidate violates the regions as planned around (inflated by the
+            margins), but one keeps clear of the regions themselves: not a region_unavoidable.
+        delay: s the measured state was predicted over (core/sample/latency.py); measured_state: that
+            state [n] (states[0] is the predicted one); None where no sample was solved (`coast`).
     """
 
     u: np.ndarray
@@ -64,6 +69,9 @@ class StepResult:
     region_unavoidable: bool = False
     horizon: int = 0
     target: np.ndarray | None = None
+    margin_unavoidable: bool = False
+    delay: float = 0.0
+    measured_state: np.ndarray | None = None
 
     @property
     def escape(self) -> str:

@@ -70,7 +70,8 @@ REACHABLE_TOLERANCE = 1e-6
 PROBE_ITERATIONS = 1000
 PROBE_SOLVE_TIME = 20.0
 #: one character per sample in the stored trace
-STATUS_CODES = {StepStatus.OK: ".", StepStatus.TRUNCATED: "t", StepStatus.FALLBACK_SHIFT: "s",
+STATUS_CODES = {StepStatus.OK: ".", StepStatus.TRUNCATED: "t", StepStatus.UNCONVERGED: "u",
+                StepStatus.FALLBACK_SHIFT: "s",
                 StepStatus.FALLBACK_STEADY: "S", StepStatus.FALLBACK_SAFE: "X", StepStatus.FALLBACK_RECOVERY: "R"}
 #: the fallback candidates (core/sample/fallback.py), as statuses
 FALLBACK_KINDS = tuple(StepStatus(f"fallback_{kind}") for kind in FALLBACK_CANDIDATES)
@@ -205,6 +206,7 @@ def solver_section(s: Scored) -> dict[str, Any]:
     fallbacks = {kind: run.status.count(kind) for kind in FALLBACK_KINDS}
     return {
         "samples": K, "ok": run.status.count(StepStatus.OK), "truncated": run.status.count(StepStatus.TRUNCATED),
+        "unconverged": run.status.count(StepStatus.UNCONVERGED),
         "solver_failures": int(sum(st not in SOLVED for st in run.solver_status)),
         "fallbacks": int(sum(fallbacks.values())), "fallback_kinds": fallbacks,
         "initial_feasible": bool(usable[0]),

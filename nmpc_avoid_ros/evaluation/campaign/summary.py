@@ -83,6 +83,7 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "samples": sum(r["samples"] for r in records),
         "solver_failures": sum(r["solver_failures"] for r in records),
         "truncated": sum(r["truncated"] for r in records),
+        "unconverged": sum(r.get("unconverged", 0) for r in records),  # records from before the status: none
         "fallbacks": sum(r["fallbacks"] for r in records),
         "fallback_kinds": {k: sum(r["fallback_kinds"].get(k, 0) for r in records) for k in FALLBACK_KINDS},
         "penetration_after_first_step": _max([r["penetration_after_first_step"] for r in feasible_start]),
@@ -214,7 +215,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"  near y~ {pct(s['share_near_admissible'])}  not at rest {s['not_at_rest']}",
             f"  max penetration {s['max_penetration']:.3g} (keep-in {s['max_penetration_keep_in']:.3g}, "
             f"ellipses {s['max_penetration_obstacles']:.3g}; runs > 1e-3: {s['runs_with_penetration_over_1e-3']})",
-            f"  samples {s['samples']}: solver failures {s['solver_failures']} (truncated {s['truncated']}), "
+            f"  samples {s['samples']}: solver failures {s['solver_failures']} (truncated {s['truncated']}, "
+            f"unconverged {s['unconverged']}), "
             f"fallbacks {s['fallbacks']} in {s['runs_with_fallback']} runs, recursive feasibility "
             f"{pct(s['recursive_feasibility_rate'])}",
             f"  first solve failed {s['first_solve_failed']} (x0 in X_N: {s['first_solve_failed_x0_feasible']}; "
