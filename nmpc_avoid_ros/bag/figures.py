@@ -117,7 +117,8 @@ def covering_limits(traces: Sequence[Trace], xlim: tuple[float, float], ylim: tu
 
 def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float | None = 2.0,
                    target_state: Sequence[float] | None = None, xlim=(-6.0, 6.0), ylim=(-2.0, 2.0),
-                   title: str = "Phase portrait", target_states: Sequence[Sequence[float]] = ()) -> Path:
+                   title: str = "Phase portrait", target_states: Sequence[Sequence[float]] = (),
+                   axis_names: Sequence[str] = ("x1", "x2")) -> Path:
     """Fig. 1: (x1, x2) trajectories over the shaded avoided region, x0 and the target(s) marked (`target_state`,
     and each of `target_states`); the axes span xlim, ylim and every trajectory (`covering_limits`)."""
     xlim, ylim = covering_limits(traces, xlim, ylim)
@@ -138,8 +139,8 @@ def phase_portrait(traces: Sequence[Trace], path: Path, *, product_bound: float 
         ax.plot(mark[0], mark[1], "kx", ms=10, mew=2.5, label="target steady state" if i == 0 else None)
     ax.set_xlim(xlim)
     ax.set_ylim(ylim)
-    ax.set_xlabel("x1")
-    ax.set_ylabel("x2")
+    ax.set_xlabel(axis_names[0])
+    ax.set_ylabel(axis_names[1])
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
@@ -241,7 +242,7 @@ def run_figures(traces: Sequence[Trace], settings: ControllerSettings, target: S
     marks = target_states(model, held or ([target] if target is not None else []))
     phase = phase_portrait(traces, out / "phase_portrait.png", product_bound=2.0 if paper_region else None,
                            target_states=marks, xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]),
-                           title=f"Phase portrait {what}")
+                           title=f"Phase portrait {what}", axis_names=model.state_names[:2])
     series = time_series(traces, out / "time_series.png", state_names=model.state_names,
                          input_names=model.input_names, target=target, title=f"States, input and y_a {what}",
                          target_rows=output_rows(model))
