@@ -266,12 +266,13 @@ def test_a_robot_bag_with_goals_on_goal_pose_and_no_target_is_analysed_per_goal_
 
 
 def test_a_four_state_robot_bag_is_analysed_with_its_own_model(tmp_path):
-    """The mobile robot (double integrator, 4 states) on the array interface: no van der Pol output evaluated."""
+    """The mobile robot (double integrator, 4 states) on the array interface: no van der Pol output evaluated;
+    its target is the controller's `target` parameter (no message)."""
     settings = ControllerSettings.from_params(load_params_file(CONFIG / "mobile_robot_live.yaml").section("controller"))
     path = tmp_path / "mobile.mcap"
     with Ros2McapWriter(path) as bag:
-        bag.add_metadata(PARAMETERS_RECORD, parameters_record("/controller", _settings_fields(settings), 0))
-        bag.write_message("/target", Float64MultiArray(data=[1.0, 0.0]), T0 - NS)
+        bag.add_metadata(PARAMETERS_RECORD, parameters_record(
+            "/controller", {**_settings_fields(settings), "target": [1.0, 0.0]}, 0))
         for k in range(8):
             x = [min(0.25 * k, 1.0), 0.0, 1.0 if k < 4 else 0.0, 0.0]
             t = T0 + round(k * settings.sample_time * NS)
@@ -279,7 +280,8 @@ def test_a_four_state_robot_bag_is_analysed_with_its_own_model(tmp_path):
             bag.write_message("/diagnostics", _sample(x, [0.0, 0.0], x[:2], t * 1e-9), t + 3 * 10**6)
     assert analyze_main([str(path), "--out", str(tmp_path / "o")]) == 0
     (metrics,) = json.loads((tmp_path / "o" / "metrics.json").read_text())["bags"]
-    assert metrics["model"] == "double_integrator_2d" and metrics["segments"][0]["settling_step"] == 4
+    assert metrics["model"] == "double_integrator_2d" and metrics["segments"][0]["target"] == [1.0, 0.0]
+    assert metrics["segments"][0]["settling_step"] == 4 and "max_abs_x1x2" not in metrics["clearance"]["at_samples"]
     assert metrics["config"]["closest_shipped"]["file"] == "config/mobile_robot_live.yaml"
     # the keep-in vx^2 + vy^2 <= 1.44 on the recorded states: 1 - 1.44 at most
     (speed,) = metrics["clearance"]["recorded_states"]["keep_in"]

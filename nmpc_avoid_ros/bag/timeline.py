@@ -65,14 +65,17 @@ class Interface:
 def controller_interface(bag: Bag, node_params: dict[str, Any] | None) -> Interface:
     """The interface the controller ran with: its recorded parameters, else inferred (an Odometry topic
     named odom: the robot interface)."""
-    if node_params is not None and "interface" in node_params:
-        target = node_params.get("target")
-        return Interface(str(node_params["interface"]), str(node_params.get("odom_frame", "odom")),
-                         list(target) if isinstance(target, list | tuple) else None)
+    params = node_params or {}
+    target = params.get("target")
+    initial = list(target) if isinstance(target, list | tuple) else None
+    if "interface" in params:
+        return Interface(str(params["interface"]), str(params.get("odom_frame", "odom")), initial)
     odom = topic_named(bag, "odom")
     if odom is not None and bag.types.get(odom) == ODOMETRY_TYPE:
-        return Interface("robot", source=f"inferred: no recorded interface parameter, and {odom} is Odometry")
-    return Interface("array", source="inferred: no recorded interface parameter and no Odometry on odom")
+        return Interface("robot", str(params.get("odom_frame", "odom")), initial,
+                         f"inferred: no recorded interface parameter, and {odom} is Odometry")
+    return Interface("array", initial_target=initial,
+                     source="inferred: no recorded interface parameter and no Odometry on odom")
 
 
 @dataclass
