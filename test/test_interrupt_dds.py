@@ -117,6 +117,11 @@ def test_sigint_mid_solve_exits_within_a_second_and_leaves_no_solver_child(ros_g
     assert code == 0, ctrl.output()[-3000:]
     assert not exists(child), f"solver child {child} outlived the controller"
     assert "Traceback" not in ctrl.output(), ctrl.output()
+    # stopping is safe (issue 33): the interrupted sample's command (if any), then deactivate_command
+    # (zero), delivered before the process ended
+    listen.probe.spin_for(0.5)
+    assert listen.commands and listen.commands[-1] == [0.0], (listen.commands, ctrl.output()[-3000:])
+    assert ctrl.output().count("samples stopped: sent zero [0.0]") == 1, ctrl.output()[-3000:]
 
 
 def test_deactivate_mid_solve_is_honoured_within_a_second_then_activate_serves_again(ros_graph):

@@ -6,9 +6,12 @@ A managed (lifecycle) node: parameters are declared at creation; `configure` rea
 (or loads from the cache) the solver, its publishers and the target/obstacle subscriptions;
 `activate` starts the state subscription and the samples; `deactivate` stops the samples at once
 and publishes one `deactivate_command`; `cleanup`/`shutdown` release the solver and every
-publisher and subscription. With `autostart` (default) the node walks itself to active, so
-`ros2 run` alone controls; with `autostart: false` a lifecycle manager (or `ros2 lifecycle set`)
-drives it through the standard lifecycle_msgs services.
+publisher and subscription. An active node that shuts down (the transition, SIGINT or SIGTERM, also
+mid-solve) publishes `deactivate_command` once first and waits until its readers acknowledged it
+(bounded: controller_threads.py `stop_samples`), so a robot is not left driving on the last command.
+With `autostart` (default) the node walks itself to active, so `ros2 run` alone controls; with
+`autostart: false` a lifecycle manager (or `ros2 lifecycle set`) drives it through the standard
+lifecycle_msgs services.
 
 Always answers (controller_threads.py): SIGINT/SIGTERM and lifecycle transitions are honoured
 mid-solve; input floods do not hold the samples up.
@@ -223,21 +226,6 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         self.get_logger().info("controller inactive")
         return SUCCESS
 
-    def stop_samples(self) -> None:
-        # called holding the lock (a transition): no sample is running; one already taken by the
-        # executor finds `active` False and does nothing
-        self.active = False
-        self.stop_late_cover()  # before the timer it reads goes
-        if self.timer is not None:
-            self.destroy_timer(self.timer)
-            self.timer = None
-        if self.state_subscription is not None:
-            self.destroy_subscription(self.state_subscription)
-            self.state_subscription = None
-        u = self.safe_command(self.options.deactivate_command)
-        self.send_command(u)
-        self.get_logger().info(f"samples stopped: sent {self.options.deactivate_command} {u.tolist()}")
-
     @transition
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Release the solver, the publishers and the latched inputs (back to unconfigured)."""
@@ -246,6 +234,8 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
 
     @transition
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop the samples (one `deactivate_command`, delivered: stop_samples) and release everything.
+        SIGINT and SIGTERM end here too (runner's on_stop: `exit_safely`)."""
         if self.active:
             self.stop_samples()
         self.release()
@@ -496,5 +486,5 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_node(ControllerNode, argv, "controller", __doc__, on_signal=ControllerNode.interrupt,
-                    executor_factory=lambda: PoolExecutor(3))
+    return run_node(ControllerNode, argv, "controller", __doc__, on_stop=ControllerNode.exit_safely,
+                    on_signal=ControllerNode.interrupt, executor_factory=lambda: PoolExecutor(3))

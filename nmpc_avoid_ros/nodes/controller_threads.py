@@ -27,7 +27,10 @@ The node spins on three threads (runner.PoolExecutor), one per callback group, a
 
 `lock` (reentrant: on_state runs on_sample) keeps the node's state to one callback at a time, as
 the single-threaded executor did. SIGINT/SIGTERM interrupt the worker from the signal handler
-(runner's on_signal), so the node exits within ~0.3 s of a signal mid-solve, not at the deadline.
+(runner's on_signal), so the node exits within ~0.3 s of a signal mid-solve, not at the deadline;
+once the interrupted sample ended, the node shuts down through its lifecycle (`exit_safely`): an
+active node publishes `deactivate_command` once and waits until its readers acknowledged it
+(`stop_samples`), so a signal never leaves the plant on the last command.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from collections.abc import Iterator
 
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.duration import Duration
 
 from ..core.errors import RegionError
 
@@ -53,6 +57,12 @@ LATE_ALLOWANCE = 0.2
 #: s, the interpreter's thread switch interval while the late cover runs (Python's
 #: default 0.005; the flood test measured its longest wake-up delay 180 ms at 0.005, 58 ms at 0.001)
 COVER_SWITCH_INTERVAL = 0.001
+
+#: s an exiting controller waits at most for its readers to acknowledge the deactivate command (DDS
+#: delivers in a few ms on one host; the bound only counts when a reader is gone without a word)
+STOP_DELIVERY_TIMEOUT = 0.5
+#: lifecycle states from which a shutdown transition starts
+SHUTDOWN_FROM = ("unconfigured", "inactive", "active")
 
 #: the standard lifecycle_msgs services of a managed node
 LIFECYCLE_SERVICES = ("change_state", "get_state", "get_available_states", "get_available_transitions",
@@ -164,6 +174,32 @@ class AlwaysAnswers:
             self._last_command_at = self.now()
             self._cover_inputs = None if next_inputs is None or len(next_inputs) == 0 else list(next_inputs)
         self.last_command = np.asarray(u, float)
+
+    def stop_samples(self) -> None:
+        """Stop the samples and publish `deactivate_command` once, then wait (at most
+        STOP_DELIVERY_TIMEOUT) until every matched reader acknowledged it: a process about to exit
+        would otherwise take the message with it. Called holding the lock (a transition): no sample
+        runs; one already taken by the executor finds `active` False and does nothing."""
+        self.active = False
+        self.stop_late_cover()  # before the timer it reads goes
+        if self.timer is not None:
+            self.destroy_timer(self.timer)
+            self.timer = None
+        if self.state_subscription is not None:
+            self.destroy_subscription(self.state_subscription)
+            self.state_subscription = None
+        u = self.safe_command(self.options.deactivate_command)
+        self.send_command(u)
+        delivered = self.io.publisher.wait_for_all_acked(Duration(seconds=STOP_DELIVERY_TIMEOUT))
+        self.get_logger().info(f"samples stopped: sent {self.options.deactivate_command} {u.tolist()}"
+                               + ("" if delivered else f", not acknowledged by every reader in "
+                                  f"{STOP_DELIVERY_TIMEOUT:g} s"))
+
+    def exit_safely(self) -> None:
+        """runner's on_stop (after SIGINT/SIGTERM; no callback runs any more): the lifecycle shutdown,
+        so an active node publishes its deactivate command (delivered) before it goes away."""
+        if self._state_machine.current_state[1] in SHUTDOWN_FROM:
+            self.trigger_shutdown()
 
     def safe_command(self, behavior: str) -> np.ndarray:
         """The command [m] of a stale-state or deactivate `behavior` (one of STALE_BEHAVIORS)."""
