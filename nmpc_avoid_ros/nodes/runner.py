@@ -1,9 +1,11 @@
-"""`main` of every node: ROS arguments, --help, clean exit 0 on SIGINT/SIGTERM, clear config errors."""
+"""`main` of every node: ROS arguments, --help, clean exit 0 on SIGINT/SIGTERM, clear config errors,
+and core's `logging` records (a first start's compile, core/nlp/codegen.py) in the node's ROS log."""
 
 from __future__ import annotations
 
 import concurrent.futures
 import gc
+import logging
 import signal
 import sys
 import threading
@@ -20,6 +22,7 @@ from rclpy.executors import (
     SingleThreadedExecutor,
     TimeoutException,
 )
+from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
@@ -62,6 +65,24 @@ class PoolExecutor(Executor):
         return not not_done
 
 
+class RosLogHandler(logging.Handler):
+    """Passes the package's Python `logging` records (INFO and up) to an rclpy logger: core logs
+    without ROS, the node's log shows it, also while the node is still being built."""
+
+    def __init__(self, logger) -> None:
+        super().__init__(logging.INFO)
+        self.logger = logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        text = record.getMessage()
+        if record.levelno >= logging.ERROR:
+            self.logger.error(text)
+        elif record.levelno >= logging.WARNING:
+            self.logger.warning(text)
+        else:
+            self.logger.info(text)
+
+
 def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc: str | None,
              on_stop: Callable[[Node], None] | None = None, on_signal: Callable[[Node], None] | None = None,
              executor_factory: Callable[[], Executor] = SingleThreadedExecutor) -> int:
@@ -89,6 +110,10 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
 
     previous = {sig: signal.signal(sig, on_stop_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     rclpy.init(args=[name, *argv], signal_handler_options=SignalHandlerOptions.NO)
+    package_log = logging.getLogger(__name__.split(".")[0])
+    ros_log = RosLogHandler(get_logger(name))
+    package_log.addHandler(ros_log)
+    package_log.setLevel(logging.INFO)
     executor = None
     try:
         try:
@@ -121,6 +146,7 @@ def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        package_log.removeHandler(ros_log)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return 0

@@ -23,7 +23,10 @@ GRAPH_SETTLE s (up to GRAPH_GRACE s more); `send` returns only when every matche
 acknowledged it, so the process may exit at once without losing it (the line printed names the
 nodes). A parameter goes through the node's
 `<node>/set_parameters` service with the type the node declared (`mu 0` is sent as 0.0). Each wait
-is bounded by `--timeout` s.
+is bounded by `--timeout` s, except for a controller that is starting: the node is in the graph (it
+is created before its solver is built) but has no subscription yet or does not answer (a first start
+compiles its solver's code for a minute or two and logs so); `send` says so on stderr and waits for
+it up to STARTING_TIMEOUT s.
 
 Exit codes: 0 delivered (or set); 1 no controller listening (another reader is not enough), no
 acknowledgement, or the parameter refused (one line on stderr says why); 2 bad arguments.
@@ -50,6 +53,9 @@ GRAPH_GRACE = 4.0
 #: finds the others one by one, measured up to 1.1 s apart on one machine (a recorder found after the
 #: controller missed messages in test/test_send_dds.py with 0 and with 0.5 s)
 GRAPH_SETTLE = 1.5
+#: s `send` waits at most for a node that is in the graph but not serving yet (a first start compiles)
+STARTING_TIMEOUT = 300.0
+_noted_starting: set[str] = set()  # nodes `starting` said it waits for
 #: ns of the markers `send` makes unless --ns
 DEFAULT_NS = "send"
 
@@ -299,6 +305,20 @@ def node_name(node: Any, relative: str) -> str:
     return node.resolve_service_name(f"{relative}/_").rsplit("/", 1)[0]
 
 
+def starting(node: Any, name: str, begin: float, what: str) -> bool:
+    """Whether to go on waiting (since `begin`, monotonic s) for the node `name` (fully qualified): it is
+    in the graph, not serving yet, and STARTING_TIMEOUT has not passed. Says so on stderr once."""
+    namespace, _, short = name.rpartition("/")
+    if time.monotonic() - begin >= STARTING_TIMEOUT or (short, namespace or "/") not in \
+            node.get_node_names_and_namespaces():
+        return False
+    if name not in _noted_starting:
+        _noted_starting.add(name)
+        print(f"send: {name} is up but has no {what} yet: starting (a first start compiles its solver, its log says "
+              f"how long); waiting up to {STARTING_TIMEOUT:.0f} s", file=sys.stderr)
+    return True
+
+
 def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: float) -> tuple[str, list[str]]:
     """Publish `message` once on `topic` (LATCHED_QOS) once a subscription of the node `reader` (fully
     qualified) matched, and wait until every matched reader acknowledged it: (the resolved topic, the
@@ -318,11 +338,16 @@ def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: f
         return [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in node.get_subscriptions_info_by_topic(name)
                 if i.node_name != node.get_name()]
 
+    begin = time.monotonic()
     while reader not in readers() or publisher.get_subscription_count() == 0:
         if time.monotonic() >= end:
-            raise SendError(f"no subscriber of {reader} on {name} after {timeout:.1f} s (is it running? --node "
-                            f"names another)")
+            if not starting(node, reader, begin, f"subscription on {name}"):
+                raise SendError(f"no subscriber of {reader} on {name} after {time.monotonic() - begin:.1f} s (is "
+                                f"it running? --node names another)")
+            end = math.inf  # a starting controller: the bound is STARTING_TIMEOUT
         time.sleep(0.02)
+    if end == math.inf:  # the steps after the match keep their own bound
+        end = time.monotonic() + timeout
     # every reader the graph knows of (a controller's two, a recorder's) matched, and the graph still for
     # GRAPH_SETTLE s (this process's discovery finds the other nodes one by one); one of incompatible QoS
     # never matches: bounded by GRAPH_GRACE
@@ -357,8 +382,10 @@ def set_parameter(node: Any, executor: Any, target_node: str, name: str, values:
     if not client.wait_for_services(timeout_sec=timeout):
         raise SendError(f"no parameter service {service} after {timeout:.1f} s (is the controller running?)")
     future = client.describe_parameters([name])
-    if not _spin_until(executor, future.done, timeout):
-        raise SendError(f"{remote} did not answer describe_parameters in {timeout:.1f} s")
+    begin = time.monotonic()
+    while not _spin_until(executor, future.done, timeout):
+        if not starting(node, remote, begin, "answer to its parameter services"):
+            raise SendError(f"{remote} did not answer describe_parameters in {time.monotonic() - begin:.1f} s")
     descriptors = future.result().descriptors
     if not descriptors:
         raise SendError(f"{remote} has no parameter {name!r}")

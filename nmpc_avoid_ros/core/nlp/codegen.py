@@ -6,11 +6,16 @@ CasADi's virtual machine, and `nlpsol(name, plugin, "lib.so", opts)` loads them 
 symbolic work. The cache key is a SHA-256 of the CasADi version, the solver plugin and the
 serialised symbolic problem, so any change of structure (horizon, model, region capacity, ...)
 gets its own library, and run-time parameters (target, weights, obstacles) never do.
+
+A first start compiles (nothing in the cache for this structure): the first compile of a process
+logs once, on the `logging` logger of this module, that it compiles, about how long it takes and
+where the cache is; the nodes pass core's log records on to the ROS log (nodes/runner.py).
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import shutil
 import subprocess
@@ -30,6 +35,26 @@ CACHE_ENV = "NMPC_AVOID_ROS_CACHE"
 #: -O1 7.4 s, -O2 12.9 s to compile; solves 12 % slower than -O2 (robot), 6 % (van der Pol). A
 #: shipped config's first start compiles 9 s (van der Pol) and 16 s (robot) instead of 44 and 77.
 COMPILE_FLAGS = ("-O0", "-fPIC", "-shared")
+#: s to generate and compile one NLP's code on a 2-core machine, and how many NLPs a shipped live
+#: config compiles at most (config/van_der_pol_live.yaml: 6, its first start took 77 s here): what the
+#: first start's log line announces.
+SECONDS_PER_NLP = 13.0
+LIVE_CONFIG_NLPS = 6
+
+log = logging.getLogger(__name__)
+_announced = False  # the first compile of this process logged
+
+
+def announce_compile(folder: Path) -> None:
+    """Log once per process that a compile starts, about how long it takes and where the cache is."""
+    global _announced
+    if _announced:
+        return
+    _announced = True
+    log.info(f"first start with this problem structure: compiling the solver's generated code, up to about "
+             f"{SECONDS_PER_NLP:.0f} s per NLP (a shipped live config compiles up to {LIVE_CONFIG_NLPS}: about "
+             f"{SECONDS_PER_NLP * LIVE_CONFIG_NLPS / 60:.1f} min on 2 cores); cached in {folder}: later starts "
+             f"load it at once")
 
 
 def cache_dir(setting: str = "") -> Path:
@@ -69,6 +94,7 @@ def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Functi
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"cannot create the solver cache folder {folder}: {exc.strerror or exc}") from None
+    announce_compile(folder)
     solver = make_solver()
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
         source = f"nmpc_{key}.c"
