@@ -6,9 +6,10 @@ seconds) in real time: the plant integrates the continuous model at 40 Hz under 
 it received and reports that command in its odometry's twist, which is what this test reads. The
 controller drives towards a goal 6 m away; once the plant moves at over MOVING m/s the controller
 gets the signal (SIGINT to its process group, as Ctrl-C in a terminal; SIGTERM to its PID, as
-`kill`). Within STOPPED_WITHIN s the plant's command is zero for good: the controller published its
-deactivate command once, after any command of the sample the signal interrupted, and waited for the
-plant's acknowledgement before its process ended (nodes/controller_threads.py `stop_samples`).
+`kill`; or the lifecycle shutdown transition, after which the process stays, finalized). Within
+STOPPED_WITHIN s the plant's command is zero for good: the controller published its deactivate
+command once, after any command of the sample the signal interrupted, and waited for the plant's
+acknowledgement before its process ended (nodes/controller_threads.py `stop_samples`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ import time
 
 import pytest
 from geometry_msgs.msg import TwistStamped
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 from nav_msgs.msg import Odometry
 from test_robot_interface import CONFIG, RobotProbe
 
@@ -36,10 +39,11 @@ ODOM_PERIOD = 1 / 40
 MOVING = 0.1
 
 
-def stop_a_moving_robot(ros_graph, signum: int, to_group: bool) -> tuple[float, float, list]:
-    """Drive the unicycle towards (3, 2), signal the controller mid-move; returns (s from the signal
-    until the plant's command was zero for good, s until the controller exited, the plant's commands
-    [(receipt time - signal time, v, omega)] around the signal)."""
+def stop_a_moving_robot(ros_graph, signum: int | None, to_group: bool) -> tuple[float, float, list]:
+    """Drive the unicycle towards (3, 2), signal the controller mid-move (`signum` None: request the
+    lifecycle shutdown); returns (s from the signal until the plant's command was zero for good, s until
+    the controller exited or answered, the plant's commands [(receipt time - signal time, v, omega)]
+    around the signal)."""
     _, _, start, probe = ros_graph
     p = probe()
     robot = RobotProbe(p)
@@ -49,6 +53,7 @@ def stop_a_moving_robot(ros_graph, signum: int, to_group: bool) -> tuple[float, 
         applied.append((time.monotonic(), msg.twist.twist.linear.x, msg.twist.twist.angular.z))
 
     p.node.create_subscription(Odometry, "odom", on_odom, STREAM_QOS)
+    change = p.node.create_client(ChangeState, "/controller/change_state")
     ctrl = start("controller", *PARAMS)
     plant = start("plant", *PARAMS)
     assert p.spin_until(lambda: "controller active" in ctrl.output() and len(applied) > 0, 60), \
@@ -58,15 +63,22 @@ def stop_a_moving_robot(ros_graph, signum: int, to_group: bool) -> tuple[float, 
     assert p.spin_until(moving, 30), (applied[-5:], ctrl.output()[-3000:])
     p.spin_for(0.3)  # well into the move: samples solve every 0.2 s
     assert moving(), applied[-5:]
+    assert change.wait_for_service(timeout_sec=10)
     signalled = time.monotonic()
-    if to_group:
+    if signum is None:
+        future = change.call_async(ChangeState.Request(
+            transition=Transition(id=Transition.TRANSITION_ACTIVE_SHUTDOWN)))
+        assert p.spin_until(future.done, 10) and future.result().success, ctrl.output()[-3000:]
+    elif to_group:
         ctrl.send(signum)
     else:
         os.kill(ctrl.pid, signum)
-    while ctrl.alive() and time.monotonic() - signalled < 10:
+    while signum is not None and ctrl.alive() and time.monotonic() - signalled < 10:
         p.spin_for(0.01)
     exited = time.monotonic() - signalled
     p.spin_for(1.0)  # the plant goes on publishing what it applies
+    if signum is None:  # finalized, still there: a signal now sends nothing more
+        assert ctrl.alive() and ctrl.stop() == 0, ctrl.output()[-3000:]
     assert not ctrl.alive(), ctrl.output()[-3000:]
     assert ctrl.proc.returncode == 0, ctrl.output()[-3000:]
     moving_until = max((t for t, v, w in applied if (v, w) != (0.0, 0.0)), default=signalled)
@@ -83,12 +95,13 @@ def stop_a_moving_robot(ros_graph, signum: int, to_group: bool) -> tuple[float, 
     return stopped_after, exited, around
 
 
-@pytest.mark.parametrize(("signum", "to_group"), [(signal.SIGINT, True), (signal.SIGTERM, False)],
-                         ids=["SIGINT-to-group", "SIGTERM-to-pid"])
+@pytest.mark.parametrize(("signum", "to_group"), [(signal.SIGINT, True), (signal.SIGTERM, False), (None, False)],
+                         ids=["SIGINT-to-group", "SIGTERM-to-pid", "lifecycle-shutdown"])
 def test_a_signal_to_the_controller_of_a_moving_robot_leaves_the_plant_on_the_deactivate_command(
         ros_graph, signum, to_group):
     stopped_after, exited, around = stop_a_moving_robot(ros_graph, signum, to_group)
-    print(f"{signal.Signals(signum).name}: plant's command zero {stopped_after * 1e3:.0f} ms after the signal "
+    what = signal.Signals(signum).name if signum else "shutdown transition"
+    print(f"{what}: plant's command zero {stopped_after * 1e3:.0f} ms after the signal "
           f"(as its odometry reports it, <= {ODOM_PERIOD * 1e3:.0f} ms later than received), "
-          f"controller exited after {exited * 1e3:.0f} ms")
+          f"controller exited (or answered) after {exited * 1e3:.0f} ms")
     assert stopped_after <= STOPPED_WITHIN + ODOM_PERIOD, (stopped_after, around)
