@@ -81,6 +81,7 @@ from ..ros.parameters import (
     settings_specs,
 )
 from ..ros.qos import LatchedSubscription
+from .controller_inputs import InputLedger, JudgedInputs
 from .controller_io import INTERFACES
 from .controller_threads import AlwaysAnswers, locked, move_to_group, transition
 from .controller_views import ControllerViews, diagnostic_array
@@ -92,7 +93,7 @@ NODE_SPECS = node_settings_specs()
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 
-class ControllerNode(AlwaysAnswers, LifecycleNode):
+class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
     """Thin managed node: converts messages, calls the core controller, publishes.
 
     The solver is built once, in `on_configure`; sample callbacks only convert, solve and publish.
@@ -181,6 +182,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         self.views = ControllerViews(self, self.io)
         self.latched_inputs = [LatchedSubscription(self, Float64MultiArray, "target", self.on_target),
                                LatchedSubscription(self, MarkerArray, "obstacles", self.on_obstacles)]
+        self.ledger = InputLedger(["target", "obstacles"] + (["goal_pose"] if self.io.goal_type else []))
         if self.io.goal_type is not None:
             self.latched_inputs.append(LatchedSubscription(self, self.io.goal_type, "goal_pose", self.on_goal))
         # their own group: a large MarkerArray is deserialised beside a running sample (controller_threads)
@@ -274,11 +276,6 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
         self.state_time_ns = now_ns
         return now_ns * 1e-9
 
-    def reject(self, what: str, reason: str) -> None:
-        self.counts["rejected_inputs"] += 1
-        self.last_rejected = f"{what}: {reason}"
-        self.log_throttled("rejected", "warning", f"rejected {what}: {reason}")
-
     @locked
     def on_state(self, msg: Float64MultiArray | Odometry) -> None:
         if not self.active:  # taken by the executor just before a deactivate
@@ -300,18 +297,14 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
 
     @locked
     def on_target(self, msg: Float64MultiArray) -> None:
-        try:
+        with self.judging("target"):  # counted; refused with the reason (controller_inputs.py)
             self.set_target(array_to_vector(msg, self.p, "target"))
-        except InputError as exc:
-            self.reject("target", str(exc))
 
     @locked
     def on_goal(self, msg: PoseStamped) -> None:
         """A goal pose (RViz "2D Goal Pose"): its position is y_t, in the odometry frame only."""
-        try:
+        with self.judging("goal_pose"):
             self.set_target(self.io.target_of(msg))
-        except InputError as exc:
-            self.reject("goal_pose", str(exc))
 
     def set_target(self, target: np.ndarray) -> None:
         self.target = target
@@ -321,6 +314,9 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
 
     def on_obstacles(self, msg: MarkerArray) -> None:
         with self.applied_beside_samples(msg) as report:  # holding the lock once applied
+            self.ledger.received("obstacles")
+            if report.rejected:
+                self.ledger.refused("obstacles", [f"marker {ns}/{i}: {reason}" for ns, i, reason in report.rejected])
             for ns, marker_id, reason in report.rejected:
                 self.reject(f"marker {ns}/{marker_id}", reason)
                 self.last_obstacle_issue = f"refused {ns}/{marker_id}: {reason}"
@@ -478,6 +474,7 @@ class ControllerNode(AlwaysAnswers, LifecycleNode):
                   "mismatch_error": f"{self.controller.memory.mismatch.last_error:.6g}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
                   "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected,
+                  **self.ledger.values(),
                   **({"state_depth": f"{a.state_depth:.6g}", "plan_depth": f"{a.plan_depth:.6g}"}
                      if (a := self.last_alarm) else {})}
         msg = diagnostic_array(self.get_fully_qualified_name(), self.get_clock().now().to_msg(), level, message,

@@ -22,7 +22,8 @@ at the signal), finish the file and log the message count per topic, in well und
 
 The nodes that publish a recorded topic are asked once for their parameters; each answer is an
 MCAP metadata record (bag/node_parameters.py), so that `replay` reruns the bag with the plant
-integration and the controller settings that made it.
+integration and the controller settings that made it. A node without parameter services (`send`) is
+not asked and costs no warning (nodes/recorder_parameters.py).
 
 While it records, `~/counts` (diagnostic_msgs/DiagnosticStatus, reliable, transient local) says
 how many messages of each topic are written (a value per topic: key the topic, value the count),

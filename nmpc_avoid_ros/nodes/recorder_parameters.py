@@ -3,8 +3,11 @@ parameters (rcl_interfaces list_parameters, then get_parameters), without blocki
 
 The answer goes to a callback (the recorder writes it into the bag as an MCAP metadata record,
 bag/node_parameters.py), so a bag says with which plant integration and controller settings it was
-made. A node whose parameter services do not appear, or do not answer, is asked again every
-`RETRY_PERIOD` s and given up after `GIVE_UP_AFTER` s with one warning.
+made. A node whose parameter services do not answer is asked again every `RETRY_PERIOD` s and given
+up after `GIVE_UP_AFTER` s with one warning. A node whose parameter services never appear in the graph
+is given up quietly (a debug line): it has none to ask; so is one that leaves the graph before they
+appear. Short-lived publishers are such nodes: `send` (tools/send.py) creates its `send_<pid>` node
+without parameter services, so it costs no warning.
 """
 
 from __future__ import annotations
@@ -45,6 +48,8 @@ class _Pending:
     futures: dict[str, Future] = field(default_factory=dict)
     values: dict[str, Any] = field(default_factory=dict)
     one_by_one: bool = False
+    #: its list_parameters service showed up in the graph (a node without one is given up quietly)
+    has_services: bool = False
 
 
 class ParameterSnapshots:
@@ -71,9 +76,16 @@ class ParameterSnapshots:
             self.pending[name] = _Pending(self.node.create_client(ListParameters, f"{name}/list_parameters"),
                                           self.node.create_client(GetParameters, f"{name}/get_parameters"), now)
         for name, p in list(self.pending.items()):
-            if now - p.first_seen > GIVE_UP_AFTER:
-                self.node.get_logger().warning(f"no parameters of {name} in the bag: its parameter services did "
-                                               f"not answer in {GIVE_UP_AFTER:g} s")
+            if name not in nodes and not p.has_services:  # gone before it offered any (send): nothing to ask
+                self.node.get_logger().debug(f"no parameters of {name} in the bag: it left without parameter services")
+                self._forget(name)
+            elif now - p.first_seen > GIVE_UP_AFTER:
+                log = self.node.get_logger()
+                if p.has_services:
+                    log.warning(f"no parameters of {name} in the bag: its parameter services did not answer in "
+                                f"{GIVE_UP_AFTER:g} s")
+                else:
+                    log.debug(f"no parameters of {name} in the bag: it has no parameter services")
                 self._forget(name)
                 self.given_up.add(name)
             elif now - p.asked >= RETRY_PERIOD:
@@ -84,6 +96,7 @@ class ParameterSnapshots:
         client = p.list_client if p.names is None else p.get_client
         if not client.service_is_ready():
             return
+        p.has_services = True
         p.asked = now
         if p.names is None:
             requests = {"list": ListParameters.Request()}

@@ -28,8 +28,18 @@ is created before its solver is built) but has no subscription yet or does not a
 compiles its solver's code for a minute or two and logs so); `send` says so on stderr and waits for
 it up to STARTING_TIMEOUT s.
 
-Exit codes: 0 delivered (or set); 1 no controller listening (another reader is not enough), no
-acknowledgement, or the parameter refused (one line on stderr says why); 2 bad arguments.
+`send` knows the controller's answer (tools/send_verdict.py): before a target goes out, its size is
+checked against the controller's model (its `model` parameter, p values; `--no-check` skips this);
+after the publish, `send` waits (up to `--timeout` s) until the controller's /diagnostics count the
+message and reads its verdict there (`target_verdict`, `obstacles_verdict`, with the reason). A
+controller that publishes no diagnostics (inactive, or lockstep without a plant) gives no verdict:
+one line on stderr says so and the message counts as delivered.
+
+Exit codes: 0 delivered and accepted (or set; or delivered with no verdict to read, said on stderr);
+1 no controller listening (another reader is not enough), no acknowledgement, or the controller
+refused it: the message (its reason from the diagnostics) or the parameter (one line on stderr says
+why); 2 bad arguments, among them a target of the wrong size for the controller's model (the line
+names the size it takes).
 """
 
 from __future__ import annotations
@@ -42,6 +52,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from ..core.errors import NmpcError
+from .send_verdict import ControllerWatch
 
 PROG = "python -m nmpc_avoid_ros send"
 #: default --timeout, s
@@ -103,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
                              f"acknowledgement (default {DEFAULT_TIMEOUT:g})")
     common.add_argument("--namespace", default=None,
                         help="namespace of the controller, e.g. /robot1 (like --ros-args -r __ns:=/robot1)")
+    common.add_argument("--no-check", action="store_true",
+                        help="send a target unchecked against the controller's model (the controller still "
+                             "judges it and send reports its verdict)")
     common.add_argument("--node", default="controller",
                         help="the node that must receive it (its subscription, or its parameter service), "
                              "relative to the namespace or absolute (default controller)")
@@ -319,13 +333,15 @@ def starting(node: Any, name: str, begin: float, what: str) -> bool:
     return True
 
 
-def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: float) -> tuple[str, list[str]]:
+def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: float,
+                    check: Any = None) -> tuple[str, list[str]]:
     """Publish `message` once on `topic` (LATCHED_QOS) once a subscription of the node `reader` (fully
     qualified) matched, and wait until every matched reader acknowledged it: (the resolved topic, the
     subscribing nodes). SendError otherwise.
 
     Another reader (a recorder) matching first is not enough: the message must reach `reader`, and a
-    latched message is gone for a late reader once this process exits."""
+    latched message is gone for a late reader once this process exits. `check()`, if given, runs just
+    before the publish (the controller is configured then); what it raises stops the send."""
     from rclpy.duration import Duration
 
     from ..ros.parameters import LATCHED_QOS
@@ -364,6 +380,8 @@ def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: f
     if matched < listed:
         print(f"send: {name}: {matched} of the {listed} subscriptions the graph lists matched; the others may "
               f"not get this message", file=sys.stderr)
+    if check is not None:
+        check()
     publisher.publish(message)
     if not publisher.wait_for_all_acked(Duration(seconds=timeout)):
         raise SendError(f"{name}: the subscribers did not acknowledge the message in {timeout:.1f} s")
@@ -420,8 +438,11 @@ def send(args: argparse.Namespace, ros_args: Sequence[str]) -> str:
         try:
             if message is not None:
                 topic, msg, what = message
-                name, nodes = publish_latched(node, topic, msg, node_name(node, args.node), args.timeout)
-                return f"send: {what} on {name}, acknowledged by {', '.join(nodes) or 'its subscribers'}"
+                watch = ControllerWatch(node, executor, node_name(node, args.node), topic)
+                name, nodes = publish_latched(node, topic, msg, watch.reader, args.timeout,
+                                              lambda: watch.prepare(args, args.timeout))
+                line = f"send: {what} on {name}, acknowledged by {', '.join(nodes) or 'its subscribers'}"
+                return line + watch.outcome(what, args.timeout)  # SendError if the controller refused it
             remote, value = set_parameter(node, executor, args.node, args.name, args.values, args.timeout)
             return f"send: {remote} {args.name} = {value!r}"
         finally:
