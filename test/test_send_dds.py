@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph import ROOT
@@ -139,6 +140,13 @@ def test_the_readme_sequence_through_send_arrives_and_the_live_loop_keeps_the_el
     ellipse = markers[0]
     assert (ellipse.header.frame_id, ellipse.type, ellipse.pose.position.x, ellipse.pose.position.y,
             ellipse.scale.x, ellipse.scale.y) == ("state", 3, 2.0, -0.5, 0.8, 0.4)
+
+    # the truth (issue 32): every state the plant published, at its own 20 Hz, keeps |x1 x2| <= 2 and the
+    # state box |x2| <= 2 to the bound, the controller planning from the state predicted over its latency
+    recorded = np.array([msg.data for _, msg in bag.topics["/state"]])
+    worst_product, worst_x2 = np.max(np.abs(recorded[:, 0] * recorded[:, 1])), np.max(np.abs(recorded[:, 1]))
+    print(f"\nrecorded plant states: {len(recorded)}, max |x1 x2| {worst_product:.5f}, max |x2| {worst_x2:.5f}")
+    assert worst_product <= 2 + BOUND and worst_x2 <= 2 + BOUND, (worst_product, worst_x2)
 
     settings = ControllerSettings.from_params(load_params_file(LIVE).section("controller"))
     run = load_run(bag_path, settings=settings, bag=bag)

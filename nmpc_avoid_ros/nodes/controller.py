@@ -23,19 +23,10 @@ feasibility argument) and is counted in `missed_samples`.
 Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message is solved once,
 as it arrives, so the ROS loop reproduces the offline loop exactly.
 
-Diagnostics (one DiagnosticArray per sample on /diagnostics, values as strings): the counters `samples`,
-`fallbacks`, `rejected_inputs`, `deadline_overruns`, `stale` (samples without a usable state), `states_received`
-(good states), `missed_samples` (timer mode: samples with no new state since the last solve), `stale_episodes`,
-`late_samples` (timer mode: samples covered with the last plan's next input while a step ran late,
-controller_threads.py); `state_age_ms` (age of the state this sample used), `max_state_gap_ms` (longest interval
-between two good states), `stale_for_s` (how long the current stale episode lasts) and `last_stale_s` (length of
-the last one that ended); with a solve also `status`, `solver_status`, `iterations`, `solve_time_ms`,
-`step_latency_ms`, `budget_exhausted`, the costs, `y_a`, `state` and `state_time` (node-clock s when that state
-arrived, in lockstep on sim time its sample time: moving obstacles are predicted from it). Obstacles:
-`moving_regions`, `obstacle_resets` (velocity estimates reset) and `last_obstacle_issue` (the latest refusal or
-reset of a marker, with its reason). The plant-model mismatch (core/sample/mismatch.py): `mismatch_error` (this
-sample's one-step prediction error, plane units) and `mismatch_margin` (what it adds to the obstacles);
-`cover_wake_delay_ms`: the late cover's longest wake-up delay.
+Diagnostics: one DiagnosticArray per sample on /diagnostics, values as strings; the keys are listed in
+the README (the paragraph on `/diagnostics`). Latency compensation (nodes/command_timing.py,
+core/sample/latency.py): `state_age_ms`, `predicted_delay_ms`, `expected_latency_ms`, `late_commands`;
+`state` is the measured state, `planned_state` the one the plan starts from.
 
 Stability certificate (core/loop/certificate.py, docs/certificate.md): every sample checks the decrease
 of the value function; diagnostics carry `value_function`, `decrease`, `decrease_bound`,
@@ -81,6 +72,7 @@ from ..ros.parameters import (
     settings_specs,
 )
 from ..ros.qos import LatchedSubscription
+from .command_timing import CommandTiming
 from .controller_inputs import InputLedger, JudgedInputs
 from .controller_io import INTERFACES
 from .controller_threads import AlwaysAnswers, locked, move_to_group, transition
@@ -176,6 +168,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
                        "states_received": 0, "missed_samples": 0, "stale_episodes": 0, "obstacle_resets": 0,
                        "late_samples": 0}
         self.max_state_gap = 0.0  # s, longest interval between two good states
+        self.timing = CommandTiming()  # when the command leaves (latency compensation)
         self.last_stale = 0.0  # s, length of the last stale episode that ended
         self.last_rejected = ""
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
@@ -369,7 +362,8 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
     def on_sample(self) -> None:
         if not self.active:  # taken by the executor just before a deactivate
             return
-        now = self.now()
+        # the instant state_age is measured at: the command's hold counts from it (nodes/command_timing.py)
+        now, started = self.now(), time.perf_counter()
         self.counts["samples"] += 1
         if self.target is None or self.state is None:
             # idle until the loop can close: no command, so a waiting plant does not start drifting
@@ -413,13 +407,21 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
             except NmpcError as exc:
                 self.reject("obstacles", str(exc))
             self.regions_revision = self.store.revision
-        started = time.perf_counter()
-        result = self.controller.step(self.state, self.target, time=self.state_time)
+        # real time: the state is state_age old now and the command leaves a solve later (core/sample/latency.py)
+        compensate = self.options.latency_compensation and not self.lockstep
+        self.cover_hold = hold = self.options.command_latency if compensate else 0.0
+        result = self.controller.step(self.state, self.target, time=self.state_time,
+                                      latency=self.timing.predicted(self.state_age, hold) if compensate else 0.0,
+                                      command=self.last_command if compensate and self.last_result else None)
         self.state_solved = True
         self.fresh_state = False
         self.last_result = result
+        self.timing.hold_until(started, hold)  # the instant the plan was predicted for (nodes/command_timing.py)
         self.send_command(result.u, None if self.lockstep else result.inputs[1:])  # the late cover's inputs
         latency = time.perf_counter() - started
+        self.timing.record(latency, hold)
+        if compensate:
+            self.controller.command_sent(self.state_time + self.state_age + latency)
         if result.is_fallback:
             self.counts["fallbacks"] += 1
         if result.solve_time > self.controller.settings.sample_time:
@@ -467,7 +469,11 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
         values = {**{k: str(v) for k, v in self.counts.items()}, "mu": f"{s.mu:g}", "kappa": f"{s.kappa:g}",
                   "nlp_builds": str(self.controller.nlp_builds), "regions": str(len(self.controller.regions)),
                   "command": str(np.asarray(self.last_command).tolist()),
-                  "state_age_ms": f"{self.state_age * 1e3:.1f}", "max_state_gap_ms": f"{self.max_state_gap * 1e3:.1f}",
+                  "state_age_ms": f"{self.state_age * 1e3:.1f}",
+                  "predicted_delay_ms": f"{(result.delay if result else 0.0) * 1e3:.2f}",
+                  "expected_latency_ms": f"{self.timing.expected() * 1e3:.2f}",
+                  "late_commands": str(self.timing.late_commands),
+                  "max_state_gap_ms": f"{self.max_state_gap * 1e3:.1f}",
                   "stale_for_s": f"{0.0 if self.stale_since is None else self.now() - self.stale_since:.3f}",
                   "last_stale_s": f"{self.last_stale:.3f}", "cover_wake_delay_ms": f"{self.cover_wake_delay * 1e3:.1f}",
                   "mismatch_margin": f"{self.controller.mismatch_margin:.6g}",

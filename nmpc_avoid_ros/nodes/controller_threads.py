@@ -130,6 +130,8 @@ class AlwaysAnswers:
         self._command_lock = threading.Lock()
         self._cover_inputs = None  # the rest of the plan in force (inputs [m]), None: no cover
         self._last_command_at = -math.inf  # node-clock s of the last command published
+        #: s a sample holds its command back on purpose (command_latency): the cover waits that much longer
+        self.cover_hold = 0.0
         #: longest delay, s, of the late cover's wake-ups beyond its period (what it could not control)
         self.cover_wake_delay = 0.0
 
@@ -226,7 +228,7 @@ class AlwaysAnswers:
             # every period from there (so a sample 4 s long is covered every period, not once)
             next_tick = now + until_next * 1e-9
             last_tick = next_tick - period if next_tick > now else next_tick + (now - next_tick) // period * period
-            if self._last_command_at >= last_tick or now - last_tick < LATE_ALLOWANCE * period:
+            if self._last_command_at >= last_tick or now - last_tick < LATE_ALLOWANCE * period + self.cover_hold:
                 return
             u = inputs.pop(0) if len(inputs) > 1 else inputs[0]  # the plan's inputs, then its last (u_a)
             self.io.publish_command(u)

@@ -79,7 +79,11 @@ def diagnostic_array(name: str, stamp: Time, level: bytes, message: str, values:
             "step_latency_ms": f"{latency * 1e3:.3f}", "budget_exhausted": str(result.budget_exhausted),
             "offset_cost": f"{result.offset_cost:.6g}", "avoidance_cost": f"{result.avoidance_cost:.6g}",
             "tracking_cost": f"{result.tracking_cost:.6g}", "y_a": str(result.y_a.tolist()),
-            "state": str(result.states[0].tolist()), "state_time": repr(state_time),
+            # the measured state (what the plant did); the plan starts from `planned_state`, it predicted
+            # `predicted_delay_ms` ahead (core/sample/latency.py)
+            "state": str((result.states[0] if result.measured_state is None else result.measured_state).tolist()),
+            "planned_state": str(result.states[0].tolist()), "state_time": repr(state_time),
+            "margin_unavoidable": str(result.margin_unavoidable),
             "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
             "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
             "horizon": str(result.horizon),

@@ -2,7 +2,11 @@
 
     ros2 run nmpc_avoid_ros plant --ros-args --params-file config/van_der_pol.yaml
 
-Real time: a timer at `publish_rate` Hz integrates the continuous dynamics over each period.
+Real time: a timer at `publish_rate` Hz integrates the continuous dynamics over each period and publishes
+the state. A command acts from the moment it arrives, as on a real plant: the period it arrives in is
+integrated under the previous command up to its arrival and under the new one from there (each period
+lasts exactly 1 / publish_rate of simulated time, so a bag's states and commands replay exactly:
+evaluation/recorded_timing.py recovers each command's arrival within its period from the states).
 Lockstep (`lockstep: true`): the plant publishes x0 once the controller listens, then after each
 command advances exactly one `sample_time`, publishes `/clock` and the new state; a closed loop
 runs as fast as the controller solves and reproduces the offline loop.
@@ -17,6 +21,8 @@ this package does not manage.
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 from geometry_msgs.msg import Twist, TwistStamped
@@ -118,6 +124,8 @@ class PlantNode(Node):
             self.waiting_timer = self.create_timer(0.05, self.publish_initial_when_heard)
         else:
             self.period = 1.0 / float(values["publish_rate"])
+            #: wall time the current period began, and how much of it (s) is integrated already
+            self.period_started, self.period_done = time.monotonic(), 0.0
             self.timer = self.create_timer(self.period, self.on_timer)
         mode = f"lockstep Ts={self.sample_time:g}s" if self.lockstep else f"real time {1 / self.period:g} Hz"
         self.get_logger().info(
@@ -141,12 +149,18 @@ class PlantNode(Node):
         self.pub_clock.publish(Clock(clock=Time(nanoseconds=self.sim_time_ns).to_msg()))
 
     def on_command(self, msg: Float64MultiArray | Twist | TwistStamped) -> None:
+        previous = self.u
         try:
             self.u = twist_to_command(msg) if self.robot else array_to_vector(msg, self.model.m, "command")
         except InputError as exc:
             self.rejected += 1
             self.get_logger().warning(f"rejected command: {exc}", throttle_duration_sec=2.0)
             return
+        if not self.lockstep:
+            if self.holding:  # held so far: the plant moves from now on
+                self.period_done = min(time.monotonic() - self.period_started, self.period)
+            else:
+                self.advance_to_now(previous)  # the period so far under the command that was in force
         self.holding = False
         if self.lockstep:
             if self.max_steps and self.steps >= self.max_steps:
@@ -158,9 +172,17 @@ class PlantNode(Node):
             self.publish_state()
 
     def on_timer(self) -> None:
-        if not self.holding:
-            self.advance(self.period)
+        if not self.holding and self.period > self.period_done:
+            self.advance(self.period - self.period_done)
+        self.period_started, self.period_done = time.monotonic(), 0.0
         self.publish_state()
+
+    def advance_to_now(self, u: np.ndarray) -> None:
+        """Integrate the current period up to now (at most its end) under u [m], without noise or a step count."""
+        upto = min(time.monotonic() - self.period_started, self.period)
+        if upto > self.period_done:
+            self.x = self.sim.advance(self.x, u, upto - self.period_done)
+            self.period_done = upto
 
     def advance(self, dt: float) -> None:
         self.x = self.sim.advance(self.x, self.u, dt)

@@ -265,6 +265,12 @@ class NodeSettings:
               "solve-and-publish time measured over the last samples, input_delay; docs/design.md, 'Latency'); "
               "false: from the measured state (lockstep never predicts: its plant waits for the command)",
         runtime=True)
+    command_latency: float = setting(
+        0.0, "latency compensation: the command is published this long (s) after the sample starts, held back "
+             "until then, and the plan starts from the state predicted for that instant: the timing the prediction "
+             "assumes is then the timing the plant gets, however long the solve took below it (a longer solve "
+             "publishes at once: late_commands). 0: publish at once, predicting the median solve-and-publish "
+             "time of the last samples", runtime=True, low=0.0, high=10.0)
     deactivate_command: str = setting("zero", "the one command published when an active controller is "
                                               "deactivated or shut down", runtime=True, choices=STALE_BEHAVIORS)
 

@@ -1,0 +1,56 @@
+"""When the controller's command leaves, and how far the plan predicts the measured state for it.
+
+The node's part of latency compensation (core/sample/latency.py does the prediction): a sample starts
+when the timer fires on a state that is already `state_age` s old. With `command_latency` > 0 the
+command is held back until that long after the sample's start, so the instant the plan was predicted
+for is the instant the command leaves; a solve that takes longer publishes at once and is counted
+(`late_commands`). With 0 the command leaves at once and the prediction uses the median of the last
+LATENCY_WINDOW samples' start-to-publish times. Lockstep never predicts: its plant waits for the command.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+import numpy as np
+
+#: samples over which the expected start-to-publish time is the median (command_latency 0)
+LATENCY_WINDOW = 20
+#: s a command may leave after command_latency before it counts as late (the sleep's own wake-up delay)
+LATE_COMMAND_SLACK = 2e-3
+#: s of the hold spent spinning instead of sleeping (at most this much CPU per sample)
+SPIN = 3e-3
+
+
+class CommandTiming:
+    """Start-to-publish times of the last samples and the hold of the next command."""
+
+    def __init__(self) -> None:
+        self.latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self.late_commands = 0
+
+    def expected(self) -> float:
+        """s from a sample's start to its command's publication: the median of the last samples (0: none yet)."""
+        return float(np.median(self.latencies)) if self.latencies else 0.0
+
+    def predicted(self, state_age: float, hold: float) -> float:
+        """s from the state's measurement to the command's departure, as the next step should predict it."""
+        return state_age + (hold if hold > 0 else self.expected())
+
+    def hold_until(self, started: float, hold: float) -> None:
+        """Wait until `hold` s after `started` (time.perf_counter s); at once if that has passed. Sleeps, then
+        spins the last SPIN s: a sleep alone wakes up to several ms late under the interpreter's other threads."""
+        if hold <= 0:
+            return
+        end = started + hold
+        if end - time.perf_counter() > SPIN:
+            time.sleep(end - time.perf_counter() - SPIN)
+        while time.perf_counter() < end:
+            pass
+
+    def record(self, latency: float, hold: float) -> None:
+        """A command left `latency` s after its sample started."""
+        self.latencies.append(latency)
+        if hold > 0 and latency > hold + LATE_COMMAND_SLACK:
+            self.late_commands += 1
