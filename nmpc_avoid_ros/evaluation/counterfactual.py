@@ -34,8 +34,14 @@ from ..core.problem.models import make_model
 from ..core.problem.regions import Region
 from ..core.sample.controller import NmpcController
 from ..core.sample.status import StepStatus
+from .recorded_latency import RecordedLatency
 from .recorded_timing import RecordedTiming, TimedPlant, recorded_timing
 
+#: m.s.: an unchanged replay reproduces the recorded states this closely, or says where and why not (measured:
+#: see docs/usage.md, 'replay'; the plant's timing alone reproduces them to TIMING_TOLERANCE)
+REPLAY_BOUND = 1e-6
+#: m.s.: a replay state this far from the recorded one has begun to part from it (the timing alone: <= 3e-9)
+DRIFT = 1e-8
 #: the metrics compared side by side (and tabulated by a sweep), in this order
 COMPARED = ("settling_step", "final_error", "max_penetration", "max_abs_x1x2", "solve_ms_median", "solve_ms_max",
             "fallbacks", "certificate_violations")
@@ -46,7 +52,7 @@ class PlantChoice:
     """The plant a replay drives: the plant node's `integration` (PLANT_INTEGRATIONS) of `model`, and why.
 
     `step`: s the plant advances per command when that is its own lockstep sample time rather than
-    the controller's (None: the controller's). `timing`: a real-time plant's steps and late commands
+    the controller's (None: the controller's). `timing`: a real-time plant's periods and command arrivals
     as recorded (evaluation/recorded_timing.py; None: every sample lasts sample_time and its command
     holds from its start). `source`: where the choice comes from (the bag, a flag, or what was
     assumed and why); `notes`: the timing, and what the replay cannot reproduce (noise).
@@ -58,6 +64,10 @@ class PlantChoice:
     step: float | None = None
     notes: list[str] = dataclasses.field(default_factory=list)
     timing: RecordedTiming | None = None
+    #: the recorded plant ran in real time (its timer), not in lockstep
+    real_time: bool = False
+    #: the recorded timing in one line (`timing` set), or why it could not be recovered (None: not asked)
+    timing_note: str | None = None
 
     def build(self, settings: ControllerSettings) -> Plant:
         """The core plant (ConfigError when its model does not fit the controller's state and input)."""
@@ -92,6 +102,7 @@ def recorded_plant(bag: Bag, setup: RecordedSetup, settings: ControllerSettings,
     """
     choice = _plant_choice(bag, setup, settings, flag)
     real_time = not (setup.plant or {}).get("lockstep", bool(bag.topics.get("/clock")))
+    choice.real_time = real_time
     if run is not None and real_time and choice.integration == "continuous":
         with_timing(choice, bag, setup, run, settings)
     return choice
@@ -99,7 +110,7 @@ def recorded_plant(bag: Bag, setup: RecordedSetup, settings: ControllerSettings,
 
 def with_timing(choice: PlantChoice, bag: Bag, setup: RecordedSetup, run: RecordedRun,
                 settings: ControllerSettings) -> None:
-    """Give `choice` the real-time plant's recorded steps and late commands, or a note why not. The
+    """Give `choice` the real-time plant's recorded periods and command arrivals, or a note why not. The
     plant's step is 1 / its publish_rate (without its parameters: the median gap of the recorded
     states' log times, rounded to a whole rate in Hz; the check against the states catches a wrong one)."""
     rate = (setup.plant or {}).get("publish_rate")
@@ -108,13 +119,18 @@ def with_timing(choice: PlantChoice, bag: Bag, setup: RecordedSetup, run: Record
         times = np.array([t for t, _ in bag.topics.get(name, [])] if name else [], float)
         rate = round(1e9 / float(np.median(np.diff(times)))) if len(times) > 2 else 0
     if not rate:
-        choice.notes.append("no recorded timing (too few recorded states): every sample lasts sample_time")
+        choice.timing_note = "too few recorded states to tell the plant's period"
+        return
+    noise = (setup.plant or {}).get("process_noise_std") or 0.0
+    if noise:
+        choice.timing_note = (f"the plant added process noise (std {noise:g}) to every step: the recorded states "
+                              "follow from no command timing")
         return
     plant = integration_plant("continuous", make_model(choice.model), settings.sample_time)
-    timing, line = recorded_timing(bag, run, plant, 1.0 / rate, settings.sample_time)
+    held = bool((setup.plant or {}).get("hold_until_command", True))
+    timing, line = recorded_timing(bag, run, plant, 1.0 / rate, settings.sample_time, held)
     choice.timing = timing
-    choice.notes.append(line if timing is not None else f"no recorded timing ({line}): every sample lasts "
-                                                         "sample_time")
+    choice.timing_note = line
 
 
 def _plant_choice(bag: Bag, setup: RecordedSetup, settings: ControllerSettings, flag: str | None) -> PlantChoice:
@@ -152,6 +168,27 @@ class Counterfactual:
     metrics: dict[str, Any]
     #: max |x_counterfactual(k) - x_recorded(k)| over the recorded states (k = 0..K, or K-1 without a final state)
     max_state_error: float
+    #: the first state beyond REPLAY_BOUND and the sample before it, recorded and replayed (None: none beyond)
+    first_beyond: dict[str, Any] | None = None
+
+    def verdict(self) -> str:
+        """One line: within the bound, or where the replay left it and what that sample did in both runs."""
+        if self.first_beyond is None:
+            return f"max |x - x_recorded| {self.max_state_error:.3g} (within the bound {REPLAY_BOUND:g})"
+        f = self.first_beyond
+        solve = (f"; solve {f['recorded_solve_ms']:.3g} ms recorded, {f['replayed_solve_ms']:.3g} ms replayed"
+                 if f["recorded_solve_ms"] is not None and f["replayed_solve_ms"] is not None else "")
+        command = (f"; its command differs by {f['command_difference']:.3g}" if f["command_difference"] is not None
+                   else "")
+        drift = ("" if f["drift_sample"] == f["sample"] else
+                 f"; it began to part ({f['drift']:.3g}) after sample {f['drift_sample']}, "
+                 f"{f['drift_recorded_status']} recorded, {f['drift_replayed_status']} replayed")
+        inexact = {f["drift_recorded_status"], f["recorded_status"]} & {"truncated", "unconverged"}
+        why = (" (a solve cut by its wall-clock budget (truncated) or stopped short (unconverged) is not repeated "
+               "exactly offline)" if inexact else " (the replay's timing or latency is not the recording's)")
+        return (f"max |x - x_recorded| {self.max_state_error:.3g}, beyond the bound {REPLAY_BOUND:g} from state "
+                f"{f['state']} ({f['deviation']:.3g}): sample {f['sample']} {f['recorded_status']} recorded, "
+                f"{f['replayed_status']} replayed{command}{solve}{drift}{why}")
 
 
 def sweepable(name: str) -> None:
@@ -202,26 +239,44 @@ def schedules(run: RecordedRun) -> tuple[Callable[[int], np.ndarray], Callable[[
 
 
 class ScheduledController(NmpcController):
-    """NmpcController whose run-time settings follow a per-sample schedule (applied before each step)."""
+    """NmpcController whose run-time settings follow a per-sample schedule (applied before each step) and, with
+    `latency` (evaluation/recorded_latency.py), stepped as the recording's node stepped it: with the latency
+    each sample predicted, at the recorded state times, told when each command left (`command_sent`); the
+    command in force is the controller's own last one (the replay's previously applied command)."""
 
-    def __init__(self, settings: ControllerSettings, schedule: Callable[[int], dict[str, Any]]) -> None:
+    def __init__(self, settings: ControllerSettings, schedule: Callable[[int], dict[str, Any]],
+                 latency: RecordedLatency | None = None) -> None:
         super().__init__(settings)
         self.schedule = schedule
+        self.recorded = latency
         self.samples = 0
 
-    def step(self, *args: Any, **kwargs: Any) -> Any:
-        changes = {k: v for k, v in self.schedule(self.samples).items() if getattr(self.settings, k) != v}
+    def step(self, x: Any, y_t: Any, regions: Any = None, time: float | None = None, **kwargs: Any) -> Any:
+        k = self.samples
+        changes = {name: v for name, v in self.schedule(k).items() if getattr(self.settings, name) != v}
         if changes:
             self.update_settings(**changes)
         self.samples += 1
-        return super().step(*args, **kwargs)
+        rec = self.recorded
+        if rec is None or k >= len(rec.latency):
+            return super().step(x, y_t, regions, time, **kwargs)
+        if rec.times is not None:
+            time = rec.times[k]
+        kwargs.setdefault("latency", rec.latency[k])
+        result = super().step(x, y_t, regions, time, **kwargs)
+        if rec.sent is not None:
+            self.command_sent(rec.sent[k])
+        return result
 
 
 def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: str | Plant | PlantChoice = "euler",
-                       overrides: dict[str, Any] | None = None, label: str = "counterfactual") -> Counterfactual:
+                       overrides: dict[str, Any] | None = None, label: str = "counterfactual",
+                       latency: RecordedLatency | None = None) -> Counterfactual:
     """Drive the recorded run's timeline again from its first state under `settings` + `overrides`.
 
     `plant`: a core plant name (closed_loop.make_plant), a Plant, or the recording's (`recorded_plant`).
+    `latency`: the recorded samples' latency and times (evaluation/recorded_latency.py; None: none, sample k
+    at k Ts).
 
     The run-time settings the bag recorded per sample (RecordedRun.parameters) are replayed as they
     changed, except the overridden ones, which hold for the whole run.
@@ -233,15 +288,32 @@ def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: st
     def schedule(k: int) -> dict[str, Any]:
         return {name: float(values[min(k, len(values) - 1)]) for name, values in recorded.items()}
 
-    controller = ScheduledController(base, schedule)
+    controller = ScheduledController(base, schedule, latency)
     if isinstance(plant, PlantChoice):
         plant = plant.build(base)
     target, regions = schedules(run)
     result = run_closed_loop(controller, run.x[0], target, len(run.x), plant, regions)
     reference = run.states_with_final
     count = min(len(reference), len(result.x))
-    error = float(np.max(np.abs(result.x[:count] - reference[:count])))
-    return Counterfactual(label, overrides, result, loop_metrics(result, base), error)
+    deviation = np.max(np.abs(result.x[:count] - reference[:count]), axis=1)
+    error = float(np.max(deviation))
+    beyond = np.flatnonzero(deviation > REPLAY_BOUND)
+    first = None
+    if beyond.size:
+        k = int(beyond[0])  # the state after sample k - 1: that sample's solve or timing differs
+        j = max(k - 1, 0)
+        drift = int(np.flatnonzero(deviation > DRIFT)[0])  # where the replay began to part from the recording
+        first = {"state": k, "deviation": float(deviation[k]), "sample": j,
+                 "drift_sample": max(drift - 1, 0), "drift": float(deviation[drift]),
+                 "drift_recorded_status": str(run.status[max(drift - 1, 0)]),
+                 "drift_replayed_status": str(result.status[max(drift - 1, 0)]),
+                 "recorded_status": str(run.status[j]) if j < len(run.status) else None,
+                 "replayed_status": str(result.status[j]) if j < len(result.status) else None,
+                 "recorded_solve_ms": float(run.solve_ms[j]) if j < len(run.solve_ms) else None,
+                 "replayed_solve_ms": float(result.solve_time[j] * 1e3) if j < len(result.solve_time) else None,
+                 "command_difference": (float(np.max(np.abs(result.u[j] - run.u[j])))
+                                        if j < min(len(result.u), len(run.u)) else None)}
+    return Counterfactual(label, overrides, result, loop_metrics(result, base), error, first)
 
 
 def loop_metrics(run: ClosedLoopRun, settings: ControllerSettings) -> dict[str, Any]:

@@ -4,7 +4,10 @@ What the replay runs comes from the bag unless a flag says otherwise (`replay_in
 controller settings from the controller's recorded parameters (else --config, else the shipped
 van_der_pol.yaml, said so), the plant from the plant node's (evaluation/counterfactual.recorded_plant)
 and, for a real-time plant, the loop's timing from the recorded states (evaluation/recorded_timing.py;
-`--timing ideal`: every sample lasts sample_time and its command holds from its start).
+`--timing ideal`: every sample lasts sample_time and its command holds from its start) and, for a controller
+that compensated latency, the latency each sample predicted (evaluation/recorded_latency.py). The output
+says which timing and latency were used and the max deviation against the bound REPLAY_BOUND, or where and
+why the replay left it.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from ..bag.node_parameters import RecordedSetup, recorded_setup
 from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ..core.errors import NmpcError
 from ..evaluation.counterfactual import (
+    REPLAY_BOUND,
     Counterfactual,
     PlantChoice,
     metrics_table,
@@ -34,6 +38,7 @@ from ..evaluation.counterfactual import (
     recorded_plant,
     replay_closed_loop,
 )
+from ..evaluation.recorded_latency import recorded_latency
 
 
 @dataclass
@@ -81,6 +86,18 @@ def describe_inputs(inputs: ReplayInputs, plant: PlantChoice | None = None) -> l
     return lines + inputs.setup.notes
 
 
+def timing_line(plant: PlantChoice, timing: str) -> str:
+    """What timing the replay's plant runs with, in one line."""
+    if plant.timing is not None:
+        return plant.timing.describe()
+    if timing != "recorded":
+        return "ideal (--timing ideal): every sample lasts sample_time, its command acts from its start"
+    if not plant.real_time:
+        return "lockstep: every sample lasts the plant's step, its command acts from its start"
+    return (f"ideal (every sample lasts sample_time, its command acts from its start): the recorded timing cannot be "
+            f"recovered: {plant.timing_note or 'not asked'}")
+
+
 def recorded_trace(run: RecordedRun, label: str = "recorded") -> Trace:
     t = np.arange(len(run.states_with_final)) * run.sample_time
     return Trace(label, t, run.states_with_final, run.u, run.y_a)
@@ -122,16 +139,24 @@ def closed_loop_main(args: argparse.Namespace) -> int:
         run, settings = inputs.run, inputs.settings
         plant = recorded_plant(inputs.bag, inputs.setup, settings, args.plant,
                                run if args.timing == "recorded" else None)
+        # a real-time controller's samples as it stepped them: the latency each predicted, at its state times
+        latency = recorded_latency(inputs.bag, run, settings) if args.timing == "recorded" and plant.real_time \
+            else None
         if sweep is None:
             variants = [("counterfactual", overrides)]
         else:
             name, values = sweep
             variants = [(f"{name}={v:g}", {**overrides, name: v}) for v in values]
-        runs = [replay_closed_loop(run, settings, plant, changes, label) for label, changes in variants]
+        runs = [replay_closed_loop(run, settings, plant, changes, label, latency) for label, changes in variants]
     except (BagError, NmpcError) as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
         return 1
     notes = describe_inputs(inputs, plant)
+    timing = timing_line(plant, args.timing)
+    latency_used = ("none (--timing ideal)" if args.timing != "recorded" else
+                    latency.line if latency is not None else "none: the plant ran in lockstep (it waits for each "
+                                                             "command; the controller predicts nothing)")
+    notes += [f"timing: {timing}", f"latency: {latency_used}"]
     recorded = recorded_metrics(run, settings)
     rows = [("recorded", recorded)] + [(cf.label, cf.metrics) for cf in runs]
     table = metrics_table(rows)
@@ -141,19 +166,23 @@ def closed_loop_main(args: argparse.Namespace) -> int:
         print(f"replay --closed-loop: {line}")
     print(table)
     for cf in runs:
+        deviation = cf.verdict() if not cf.changes else f"max |x - x_recorded| {cf.max_state_error:.3g}"
         print(f"replay --closed-loop: {cf.label}: {len(cf.run.u)} samples on the {plant.integration} plant from "
-              f"x0 = {run.x[0].tolist()}; max |x - x_recorded| {cf.max_state_error:.3g}")
+              f"x0 = {run.x[0].tolist()}; {deviation}")
     print(f"replay --closed-loop: {len(runs)} run(s) in {seconds:.1f} s{partial}")
     report = {"bag": str(args.bag), "finished": run.finished, "plant": plant.integration, "plant_model": plant.model,
               "plant_source": plant.source, "settings_source": inputs.settings_source, "notes": notes,
-              "timing": None if plant.timing is None else plant.timing.describe(),
+              "timing": None if plant.timing is None else plant.timing.describe(), "timing_used": timing,
+              "latency": latency_used, "bound": REPLAY_BOUND,
               "seconds": seconds, "recorded": recorded, "table": table,
               "runs": [{"label": cf.label, "changes": cf.changes, "metrics": cf.metrics,
-                        "max_state_error": cf.max_state_error} for cf in runs]}
+                        "max_state_error": cf.max_state_error, "first_beyond": cf.first_beyond,
+                        "verdict": cf.verdict()} for cf in runs]}
     if args.json:
         cf = runs[0]
         doc = {**cf.run.to_json(), "summary": cf.metrics, "replay": {k: v for k, v in report.items() if k != "runs"}}
-        doc["replay"].update(changes=cf.changes, max_state_error=cf.max_state_error)
+        doc["replay"].update(changes=cf.changes, max_state_error=cf.max_state_error, first_beyond=cf.first_beyond,
+                             verdict=cf.verdict())
         if len(runs) > 1:
             doc["sweep"] = [{**r.run.to_json(), "label": r.label, "summary": r.metrics} for r in runs]
         args.json.parent.mkdir(parents=True, exist_ok=True)
