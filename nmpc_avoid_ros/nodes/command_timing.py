@@ -2,9 +2,11 @@
 
 The node's part of latency compensation (core/sample/latency.py does the prediction): a sample starts
 when the timer fires on a state that is already `state_age` s old. With `command_latency` > 0 the
-command is held back until that long after the sample's start, so the instant the plan was predicted
-for is the instant the command leaves; a solve that takes longer publishes at once and is counted
-(`late_commands`). With 0 the command leaves at once and the prediction uses the median of the last
+command is held back until that long after the timer's tick (not the callback's start, which a busy
+executor delays: a sample started 17 ms late held the previous command 17 ms longer than its plan
+assumed, and the plant left the box by 4e-3), so commands leave one sample apart and the instant the
+plan was predicted for is the instant the command leaves; a solve that takes longer publishes at once
+and is counted (`late_commands`). With 0 the command leaves at once and the prediction uses the median of the last
 LATENCY_WINDOW samples' start-to-publish times. Lockstep never predicts: its plant waits for the command.
 """
 
@@ -31,26 +33,37 @@ class CommandTiming:
         self.late_commands = 0
 
     def expected(self) -> float:
-        """s from a sample's start to its command's publication: the median of the last samples (0: none yet)."""
+        """s from a sample's start to its command's publication without a hold: the median of the last samples'
+        (0: none yet)."""
         return float(np.median(self.latencies)) if self.latencies else 0.0
 
     def predicted(self, state_age: float, hold: float) -> float:
         """s from the state's measurement to the command's departure, as the next step should predict it."""
         return state_age + (hold if hold > 0 else self.expected())
 
-    def hold_until(self, started: float, hold: float) -> None:
+    def hold_until(self, started: float, hold: float) -> float:
         """Wait until `hold` s after `started` (time.perf_counter s); at once if that has passed. Sleeps, then
-        spins the last SPIN s: a sleep alone wakes up to several ms late under the interpreter's other threads."""
-        if hold <= 0:
-            return
+        spins the last SPIN s: a sleep alone wakes up to several ms late under the interpreter's other threads.
+        Returns the seconds waited."""
+        begin = time.perf_counter()
         end = started + hold
-        if end - time.perf_counter() > SPIN:
-            time.sleep(end - time.perf_counter() - SPIN)
+        if hold <= 0 or begin >= end:
+            return 0.0
+        if end - begin > SPIN:
+            time.sleep(end - begin - SPIN)
         while time.perf_counter() < end:
             pass
+        return time.perf_counter() - begin
 
-    def record(self, latency: float, hold: float) -> None:
-        """A command left `latency` s after its sample started."""
-        self.latencies.append(latency)
-        if hold > 0 and latency > hold + LATE_COMMAND_SLACK:
+    @staticmethod
+    def hold_after_tick(command_latency: float, since_tick: float) -> float:
+        """The hold (s from now) that makes the command leave `command_latency` s after the timer's tick,
+        `since_tick` s ago; 0 when that has passed (the command leaves at once, late) or nothing is held."""
+        return max(command_latency - since_tick, 0.0) if command_latency > 0 else 0.0
+
+    def record(self, latency: float, waited: float, hold: float, command_latency: float = 0.0) -> None:
+        """A command left `latency` s after its sample started, `waited` s of it held back, for a hold of `hold`
+        s of a `command_latency` (late when it left after the hold, or had nothing left to hold)."""
+        self.latencies.append(latency - waited)
+        if command_latency > 0 and (hold <= 0 or latency > hold + LATE_COMMAND_SLACK):
             self.late_commands += 1

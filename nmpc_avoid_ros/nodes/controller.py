@@ -83,6 +83,8 @@ from .runner import PoolExecutor, run_node
 NODE_SPECS = node_settings_specs()
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+#: s: a state's DDS source timestamp further than this before its arrival (or after it) is not trusted
+SOURCE_STAMP_SKEW = 0.5
 
 
 class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
@@ -258,19 +260,23 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
     def now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    def state_clock(self) -> float:
-        """Node-clock time (s) of a state arriving now. Lockstep on sim time: its sample time. The
-        plant publishes the state's /clock tick just before it, on another topic, so the tick may be
-        handled after the state; the plant waits for our command, so it is never further ahead: the
-        time is max(clock, last state's + sample_time), in ns as the plant counts (both orders agree)."""
-        now_ns = self.get_clock().now().nanoseconds
-        if self.lockstep and self.get_clock().ros_time_is_active and self.state_time_ns is not None:
+    def state_clock(self, info: dict | None = None) -> float:
+        """Node-clock time (s) of a state arriving now. Real time: when its publisher wrote it (DDS source
+        stamp in `info`; a busy executor must not make it look younger: its age is predicted over), unless
+        that is SOURCE_STAMP_SKEW off. Lockstep on sim time: its sample time, max(clock, last state's +
+        sample_time) in ns (the plant's /clock tick, on another topic, may be handled after the state)."""
+        clock = self.get_clock()
+        now_ns = clock.now().nanoseconds
+        source_ns = int((info or {}).get("source_timestamp", 0))
+        if not clock.ros_time_is_active and 0 <= now_ns - source_ns <= SOURCE_STAMP_SKEW * 1e9:
+            now_ns = source_ns
+        if self.lockstep and clock.ros_time_is_active and self.state_time_ns is not None:
             now_ns = max(now_ns, self.state_time_ns + round(self.controller.settings.sample_time * 1e9))
         self.state_time_ns = now_ns
         return now_ns * 1e-9
 
     @locked
-    def on_state(self, msg: Float64MultiArray | Odometry) -> None:
+    def on_state(self, msg: Float64MultiArray | Odometry, info: dict) -> None:
         if not self.active:  # taken by the executor just before a deactivate
             return
         try:
@@ -278,7 +284,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
         except InputError as exc:
             self.reject(self.io.state_topic, str(exc))
             return
-        now = self.state_clock()
+        now = self.state_clock(info)
         if self.state_time is not None:
             self.max_state_gap = max(self.max_state_gap, now - self.state_time)
         self.state_time = now
@@ -362,8 +368,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
     def on_sample(self) -> None:
         if not self.active:  # taken by the executor just before a deactivate
             return
-        # the instant state_age is measured at: the command's hold counts from it (nodes/command_timing.py)
-        now, started = self.now(), time.perf_counter()
+        now, started, since_tick = self.now(), time.perf_counter(), self.since_tick()  # state_age's instant
         self.counts["samples"] += 1
         if self.target is None or self.state is None:
             # idle until the loop can close: no command, so a waiting plant does not start drifting
@@ -409,17 +414,19 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
             self.regions_revision = self.store.revision
         # real time: the state is state_age old now and the command leaves a solve later (core/sample/latency.py)
         compensate = self.options.latency_compensation and not self.lockstep
-        self.cover_hold = hold = self.options.command_latency if compensate else 0.0
+        self.cover_hold = self.options.command_latency if compensate else 0.0
+        # counted from the timer's tick, not from this callback: commands leave one sample apart (command_timing.py)
+        hold = self.timing.hold_after_tick(self.cover_hold, since_tick)
         result = self.controller.step(self.state, self.target, time=self.state_time,
                                       latency=self.timing.predicted(self.state_age, hold) if compensate else 0.0,
                                       command=self.last_command if compensate and self.last_result else None)
         self.state_solved = True
         self.fresh_state = False
         self.last_result = result
-        self.timing.hold_until(started, hold)  # the instant the plan was predicted for (nodes/command_timing.py)
+        waited = self.timing.hold_until(started, hold)  # the instant the plan was predicted for
         self.send_command(result.u, None if self.lockstep else result.inputs[1:])  # the late cover's inputs
         latency = time.perf_counter() - started
-        self.timing.record(latency, hold)
+        self.timing.record(latency, waited, hold, self.cover_hold)
         if compensate:
             self.controller.command_sent(self.state_time + self.state_age + latency)
         if result.is_fallback:

@@ -213,6 +213,14 @@ class AlwaysAnswers:
             return np.asarray(self.safe_input, float)
         return np.zeros(self.m)
 
+    def since_tick(self) -> float:
+        """s since the sample timer's last tick (0 without a timer: lockstep, or not active)."""
+        until_next = None if self.timer is None else self.timer.time_until_next_call()
+        if until_next is None:
+            return 0.0
+        period = self.controller.settings.sample_time
+        return min(max(period - until_next * 1e-9, 0.0), period)
+
     def on_late_check(self) -> None:
         """The late cover's check: a plan in force and the sample timer's last tick unanswered for
         LATE_ALLOWANCE sample periods: the plan's next input now. Takes only the command lock."""

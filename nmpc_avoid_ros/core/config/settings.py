@@ -127,6 +127,10 @@ class ControllerSettings:
         runtime=True, low=0.0)
     tolerance: float = setting(1e-8, "solver convergence tolerance; a solver option, fixed at construction",
                                low=0.0, low_open=True)
+    acceptable_tolerance: float = setting(
+        0.0, "IPOPT and FATROP stop at an acceptable point: a KKT error below this for ACCEPTABLE_ITERATIONS "
+             "iterations in a row (their acceptable_tol / tol_acceptable); 0: off. A solver option, fixed at "
+             "construction (docs/design.md, 'Acceptable points')", low=0.0)
     feasibility_tolerance: float = setting(1e-6, "a budget-cut iterate is applied only if its constraint violation "
                                                  "is below this", runtime=True, low=0.0, low_open=True)
     region_margin: float = setting(

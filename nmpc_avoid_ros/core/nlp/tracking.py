@@ -438,6 +438,9 @@ QP_ITERATION_CAP = 100
 _PLUGINS = {"ipopt": "ipopt", "fatrop": "fatrop", "sqp": "sqpmethod", "sqp_hpipm": "sqpmethod"}
 
 
+#: iterations in a row with the KKT error below acceptable_tolerance after which IPOPT or FATROP stop there
+ACCEPTABLE_ITERATIONS = 5
+
 def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
                 stages: dict[str, list[int]] | None = None) -> tuple[ca.Function, dict]:
     """nlpsol for the chosen solver path with its budget (iterations; wall time where supported).
@@ -455,9 +458,13 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
     if path == "ipopt":
         opts["ipopt"] = {"print_level": 0, "sb": "yes", "max_iter": settings.max_iterations,
                          "max_wall_time": SEARCH_SHARE * settings.max_solve_time, "tol": settings.tolerance}
+        if settings.acceptable_tolerance > 0:
+            opts["ipopt"].update(acceptable_tol=settings.acceptable_tolerance, acceptable_iter=ACCEPTABLE_ITERATIONS)
     elif path == "fatrop":
         opts.update({"structure_detection": "auto", "equality": [bool(e) for e in equality],
                      "fatrop": {"print_level": 0, "max_iter": settings.max_iterations, "tol": settings.tolerance}})
+        if settings.acceptable_tolerance > 0:
+            opts["fatrop"].update(tol_acceptable=settings.acceptable_tolerance, acceptable_iter=ACCEPTABLE_ITERATIONS)
     else:
         qpsol = "qrqp" if path == "sqp" else "hpipm"
         qp_opts: dict = {"error_on_fail": False}
