@@ -1,6 +1,6 @@
 """The truth of the live loop: the README's sequence in real time, judged by every recorded plant state.
 
-    python -m nmpc_avoid_ros.bench.live_truth --runs 5 --json bench/results/live_truth.json
+    python -m nmpc_avoid_ros.bench.live_truth --runs 5 --json bench/live_truth.json
 
 Each run starts recorder, plant and controller with config/van_der_pol_live.yaml in real time (plant at
 20 Hz, the compiled solvers from the cache), then the README's `send` sequence: target 5, the ellipse
@@ -76,7 +76,7 @@ def one_run(compensate: bool, domain: int, folder: Path) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5, help="runs per variant (with and without compensation)")
-    parser.add_argument("--json", type=Path, default=Path("bench/results/live_truth.json"))
+    parser.add_argument("--json", type=Path, default=Path("bench/live_truth.json"))
     parser.add_argument("--domain", type=int, default=91, help="first ROS_DOMAIN_ID (one per run)")
     parser.add_argument("--keep", type=Path, help="keep each run's bag, logs and analysis in this folder")
     parser.add_argument("--only", choices=("on", "off"), help="only the runs with (on) or without compensation")
