@@ -26,7 +26,7 @@ def test_the_hold_waits_until_its_instant_and_returns_what_it_waited() -> None:
 def test_the_prediction_uses_the_hold_or_the_median_unheld_latency_and_counts_late_commands() -> None:
     timing = CommandTiming()
     assert timing.predicted(0.03, 0.0) == pytest.approx(0.03)  # nothing measured yet
-    for latency, waited in ((0.065, 0.06), (0.068, 0.06), (0.070, 0.06)):
+    for latency, waited in ((0.0605, 0.0525), (0.0606, 0.0526), (0.0604, 0.0524)):  # 8 ms of work each
         timing.record(latency, waited, hold=0.06, command_latency=0.06)
     assert timing.expected() == pytest.approx(0.008)  # the work, not the hold
     assert timing.predicted(0.03, 0.05) == pytest.approx(0.08)

@@ -67,7 +67,7 @@ def test_obstacle_changes_never_rebuild_the_fast_path():
     for k in range(6):
         regions = [Ellipse((-3.0 + 0.3 * k, 0.5), (0.4, 0.3), 0.1 * k)]
         res = controller.step(x, [5.0], regions)
-        assert res.status in ("ok", "truncated")
+        assert res.status in ("ok", "truncated", "unconverged")  # a solve's iterate applied (not a fallback)
         x = res.states[1]
     assert controller.nlp_builds == builds == 4 and controller.nlp.solver is solver
 

@@ -417,8 +417,8 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
         self.cover_hold = self.options.command_latency if compensate else 0.0
         # counted from the timer's tick, not from this callback: commands leave one sample apart (command_timing.py)
         hold = self.timing.hold_after_tick(self.cover_hold, since_tick)
-        result = self.controller.step(self.state, self.target, time=self.state_time,
-                                      latency=self.timing.predicted(self.state_age, hold) if compensate else 0.0,
+        ahead = self.timing.predicted(self.state_age, hold) + self.options.transport_delay if compensate else 0.0
+        result = self.controller.step(self.state, self.target, time=self.state_time, latency=ahead,
                                       command=self.last_command if compensate and self.last_result else None)
         self.state_solved = True
         self.fresh_state = False
@@ -428,7 +428,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
         latency = time.perf_counter() - started
         self.timing.record(latency, waited, hold, self.cover_hold)
         if compensate:
-            self.controller.command_sent(self.state_time + self.state_age + latency)
+            self.controller.command_sent(self.state_time + self.state_age + latency + self.options.transport_delay)
         if result.is_fallback:
             self.counts["fallbacks"] += 1
         if result.solve_time > self.controller.settings.sample_time:

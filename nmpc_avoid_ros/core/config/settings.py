@@ -139,8 +139,8 @@ class ControllerSettings:
              "loop's latency (docs/design.md, 'Clearance margin'); the recorded clearance is the real regions'",
         runtime=True, low=0.0)
     input_delay: float = setting(
-        0.0, "s from the moment a command is published to the moment it acts on the plant (transport, the "
-             "actuator's own cycle). Each step predicts the measured state forward, with the model and the "
+        0.0, "s from the moment a command reaches the plant to the moment it acts (the actuator's own delay; "
+             "the node adds the DDS delivery, transport_delay). Each step predicts the measured state forward, with the model and the "
              "command in force, by the state's age, the node's expected solve-and-publish time and this, and "
              "plans from there (docs/design.md, 'Latency')", runtime=True, low=0.0, high=10.0)
     mismatch_gain: float = setting(
@@ -275,6 +275,10 @@ class NodeSettings:
              "assumes is then the timing the plant gets, however long the solve took below it (a longer solve "
              "publishes at once: late_commands). 0: publish at once, predicting the median solve-and-publish "
              "time of the last samples", runtime=True, low=0.0, high=10.0)
+    transport_delay: float = setting(
+        0.0, "latency compensation: s the command takes from its publication to the plant (the DDS delivery; "
+             "on loopback ~0.5 ms): added to the delay the plan predicts over. The plant's own actuator delay is "
+             "input_delay, a controller setting that offline loops use too", runtime=True, low=0.0, high=1.0)
     deactivate_command: str = setting("zero", "the one command published when an active controller is "
                                               "deactivated or shut down", runtime=True, choices=STALE_BEHAVIORS)
 

@@ -8,7 +8,7 @@ van der Pol loop: |x1 x2| 2.026 with 42-45 ms old states, docs/design.md 'Latenc
     x(0) = flow(x_measured, u_in_force, d),   d = latency + input_delay,
 
 where `latency` is what the caller knows of this sample (the node: the state's age plus its expected
-solve-and-publish time) and `input_delay` the configured transport and actuator delay; flow integrates the
+solve-and-publish time) and `input_delay` the plant's configured actuator delay; flow integrates the
 model with the configured method and sub-steps (Model.flow). The regions are placed at t + d.
 
 The same flow tells the state a plan expected at a later measurement's own time (core/sample/mismatch.py),
