@@ -140,9 +140,9 @@ class ControllerSettings:
         runtime=True, low=0.0)
     input_delay: float = setting(
         0.0, "s from the moment a command reaches the plant to the moment it acts (the actuator's own delay; "
-             "the node adds the DDS delivery, transport_delay). Each step predicts the measured state forward, with the model and the "
-             "command in force, by the state's age, the node's expected solve-and-publish time and this, and "
-             "plans from there (docs/design.md, 'Latency')", runtime=True, low=0.0, high=10.0)
+             "the node adds the DDS delivery, transport_delay). Each step predicts the measured state forward, "
+             "with the model and the command in force, by the state's age, the node's expected solve-and-publish "
+             "time and this, and plans from there (docs/design.md, 'Latency')", runtime=True, low=0.0, high=10.0)
     mismatch_gain: float = setting(
         0.0, "obstacles are planned around inflated, on top of region_margin, by this multiple of the largest "
              "one-step prediction error (plane units) measured over the last mismatch_window samples: room for "
