@@ -361,8 +361,9 @@ def test_a_starved_solver_still_commands_every_sample_through_the_fallback(ros_g
     assert ctrl.stop() == 0  # SIGINT between callbacks: every sample published both messages
     p.spin_for(1.0)
     window = solved()[n_diag:n_diag + 10]
-    # one command per sample (the first may precede the match of the probe's command subscription)
-    assert len(solved()) - 1 <= len(listen.commands) <= len(solved()), (len(listen.commands), len(solved()))
+    # one command per sample (the first may precede the match of the probe's command subscription), and the
+    # deactivate_command the stop publishes (test_stop_dds; here zero like the starved samples' own)
+    assert len(solved()) - 1 <= len(listen.commands) <= len(solved()) + 1, (len(listen.commands), len(solved()))
     assert elapsed <= 10 * 0.5 + 2.0  # ... at the sample rate (0.5 s), not slower
     assert all(d["status"].startswith("fallback") and d["level"] == 1 for d in window), window
     assert all(d["budget_exhausted"] == "True" and int(d["iterations"]) <= 1 for d in window), window

@@ -141,6 +141,11 @@ def test_a_weaker_actuator_enters_a_thin_ellipse_unless_the_margin_widens_it(gai
     from nmpc_avoid_ros.core.config.settings import load_params_file
 
     params = load_params_file(ROOT / "config" / "van_der_pol_live.yaml").section("controller")
+    # the live config also plans |x2| 5e-3 inside the box between the samples (its keep-in rows 3 and 4);
+    # past this thin ellipse at 80 % force the loop then stops in front of it, clear of both (x1 -1.05, a
+    # local minimum of the kind issue 31 is about), whenever |x2| is planned below 1.999: this test is about
+    # the mismatch margin, so it keeps the |x1 x2| rows only (the live loop's box: test_latency, test_send_dds)
+    params = {**params, "keep_in": params["keep_in"][:2], "keep_in_margin": 1e-3}
     settings = ControllerSettings.from_params(params).replace(codegen=False, max_solve_time=2.0, mismatch_gain=gain)
     controller = NmpcController(settings)
     run = run_closed_loop(controller, [1.0346166655733864, -1.6059259800145278], [-4.655908510752598], 60,

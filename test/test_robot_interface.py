@@ -223,7 +223,7 @@ def test_bad_robot_messages_are_refused_with_a_reason_and_the_loop_goes_on(ros_g
         feed(good, 0.6)
         after = robot.diags[n:]
         assert any(reason in d.get("last_rejected", "") for d in after), (reason, after[-1:])
-        solved = [d for d in after if d.get("status") in ("ok", "truncated")]
+        solved = [d for d in after if d.get("status") in ("ok", "truncated", "unconverged")]
         assert solved and json.loads(solved[-1]["state"]) == [0.0, 0.0, 0.0]  # only the good state was used
     n = len(robot.diags)
     robot.send_goal(9.0, 9.0, frame="map")  # a goal in another frame: refused, the old target stays
@@ -231,5 +231,5 @@ def test_bad_robot_messages_are_refused_with_a_reason_and_the_loop_goes_on(ros_g
     assert any("goal_pose header.frame_id is 'map'" in d.get("last_rejected", "") for d in robot.diags[n:])
     assert "target y_t = [9.0, 9.0]" not in ctrl.output()
     last = robot.diags[-1]
-    assert last["status"] in ("ok", "truncated") and int(last["rejected_inputs"]) >= 5
+    assert last["status"] in ("ok", "truncated", "unconverged") and int(last["rejected_inputs"]) >= 5
     assert ctrl.alive() and ctrl.stop() == 0

@@ -77,6 +77,9 @@ class RecordedRun:
     #: the states as measured [K, n] where the diagnostics carry `measured_state` (a controller that solves on
     #: the state predicted to the moment its command acts); None: x is what was measured
     measured: np.ndarray | None = None
+    #: s each sample's command acted after its state (diagnostics `predicted_delay_ms`: a latency-compensated
+    #: controller); None: at once (older bags)
+    delays: np.ndarray | None = None
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -200,6 +203,8 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         interface=interface,
         measured=(np.array([_float_list(v["measured_state"]) for _, v in samples])
                   if all("measured_state" in v for _, v in samples) else None),
+        delays=(np.array([float(v["predicted_delay_ms"]) * 1e-3 for _, v in samples])
+                if all("predicted_delay_ms" in v for _, v in samples) else None),
     )
 
 
@@ -211,7 +216,8 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
     output stays at the last target; overshoot, overshoot_note and final_error the last segment's (a
     run with one target: its step from the start). The flat penetration and clearance keys are those
     of the states the samples solved on; `between_samples` the model re-simulated from each sample
-    under its command (core/loop/intersample.py). The recorded plant states, the truth, are
+    under its command, acting when the controller predicted it would (core/loop/intersample.py). The recorded
+    plant states, the truth, are
     bag/truth.py's (`analyze` reports them beside these)."""
     model = make_model(settings.model)
     xs = run.states_with_final
@@ -242,7 +248,7 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
         metrics[key] = pen[key]
     metrics["min_obstacle_distance"] = _min_distance(settings, xs, y, regions_then)
     # the continuous motion under each recorded command, 10 points per sample (core/loop/intersample.py)
-    dense, held, dense_regions = dense_run(settings, model, xs, run.u, run.regions, run.times)
+    dense, held, dense_regions = dense_run(settings, model, xs, run.u, run.regions, run.times, delays=run.delays)
     between = penetration(settings, model, dense, held, dense_regions)
     metrics["between_samples"] = {key: between[key] for key in ("max_penetration", "min_clearance",
                                                                  "min_clearance_obstacles")}

@@ -30,14 +30,18 @@ POINTS_PER_SAMPLE = 10
 
 
 def dense_states(model: Model, x: np.ndarray, u: np.ndarray, sample_time: float,
-                 per_sample: int = POINTS_PER_SAMPLE) -> np.ndarray:
+                 per_sample: int = POINTS_PER_SAMPLE, delays: np.ndarray | None = None) -> np.ndarray:
     """States at t_k + j Ts / per_sample, j = 0..per_sample - 1, for every sample k < K, and x(K).
 
     x [K+1, n] (or [K, n]: then no final state is appended), u [K, m] -> [K per_sample (+1), n]; each
     sample starts from its recorded x(k), so a model mismatch does not accumulate across samples.
+    delays [K] (s): u(k) acts that long after x(k), the previous command until then (a latency-compensated
+    loop, core/sample/latency.py); None or zeros: at once.
     """
     x, u = np.atleast_2d(np.asarray(x, float)), np.atleast_2d(np.asarray(u, float))
     K = len(u)
+    if delays is not None and np.any(np.asarray(delays, float)[:K] > 0):
+        return _delayed_dense_states(model, x, u, sample_time, per_sample, np.asarray(delays, float))
     path = model.discrete_path(sample_time, "rk4", per_sample * SUBSTEPS).map(K)
     points = np.asarray(path(x[:K].T, u.T), float)  # [n, K * per_sample * SUBSTEPS]
     points = points.reshape(model.n, K, per_sample * SUBSTEPS)[:, :, SUBSTEPS - 1::SUBSTEPS]  # j = 1..per
@@ -47,19 +51,44 @@ def dense_states(model: Model, x: np.ndarray, u: np.ndarray, sample_time: float,
     return np.vstack([dense, x[K:K + 1]]) if len(x) > K else dense
 
 
+def _delayed_dense_states(model: Model, x: np.ndarray, u: np.ndarray, sample_time: float, per_sample: int,
+                          delays: np.ndarray) -> np.ndarray:
+    """`dense_states` where u(k) acts delays[k] s after x(k) (u(k-1) until then; the first: at once)."""
+    K = len(u)
+    flow = model.flow("rk4", SUBSTEPS)
+    rows = []
+    for k in range(K):
+        before = u[k - 1] if k else u[k]
+        delay = min(max(float(delays[k]), 0.0), sample_time)
+        switched = np.asarray(flow(x[k], before, delay), float).ravel()
+        for j in range(per_sample):
+            t = j * sample_time / per_sample
+            point = flow(x[k], before, t) if t <= delay else flow(switched, u[k], t - delay)
+            rows.append(np.asarray(point, float).ravel())
+    dense = np.array(rows).reshape(K * per_sample, model.n)
+    return np.vstack([dense, x[K:K + 1]]) if len(x) > K else dense
+
+
 def dense_run(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
               regions: Sequence[Sequence[Region]], times: Sequence[float] | None = None,
-              per_sample: int = POINTS_PER_SAMPLE) -> tuple[np.ndarray, np.ndarray, list[tuple[Region, ...]]]:
+              per_sample: int = POINTS_PER_SAMPLE, delays: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, list[tuple[Region, ...]]]:
     """The dense states [K per_sample + 1, n] (`dense_states`), the command held at each [same rows, m], and
     the regions in force at each, moving ones moved to the point's time (`Region.at`).
 
     x [K+1, n] states the samples solved on (+ final), u [K, m] commands, regions [K] the set in force
-    at each sample, times [K] the sample times (s; default k Ts)."""
+    at each sample, times [K] the sample times (s; default k Ts), delays [K] as in `dense_states`."""
     K = len(u)
     ts = settings.sample_time
-    dense = dense_states(model, x, u, ts, per_sample)
+    dense = dense_states(model, x, u, ts, per_sample, delays)
     t0 = np.arange(K) * ts if times is None else np.asarray(times, float)
-    held = np.repeat(np.atleast_2d(np.asarray(u, float)), per_sample, axis=0)
+    u2 = np.atleast_2d(np.asarray(u, float))
+    held = np.repeat(u2, per_sample, axis=0)
+    if delays is not None:  # before its delay, a sample's points are under the previous command
+        offsets = np.tile(np.arange(per_sample) * ts / per_sample, K)
+        sample_of = np.repeat(np.arange(K), per_sample)
+        early = offsets <= np.asarray(delays, float)[sample_of]
+        held[early] = u2[np.maximum(sample_of[early] - 1, 0)]
     held = np.vstack([held, held[-1:]])[:len(dense)]
     dense_regions: list[tuple[Region, ...]] = []
     for k in range(len(dense)):
