@@ -14,7 +14,7 @@ from conftest import PAPER_STEPS, PAPER_TARGET, PAPER_X0
 from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import InputError
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.nlp.search import Candidate, SearchReport, plan_cost, search
+from nmpc_avoid_ros.core.nlp.search import Candidate, Outcome, SearchReport, plan_cost, search
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.candidates import Guess, escape_admission, guess_start
 from nmpc_avoid_ros.core.sample.controller import NmpcController
@@ -121,7 +121,7 @@ def test_the_escape_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_wi
                     np.zeros((5, 1)))
     base_cheap = solved("shifted", nlp, w, plan_cost(nlp, w, par_cheap), base.depth)
     kept, tried, _ = escape(nlp, x, par_cheap, base_cheap, [through], 1.0)
-    assert kept is base_cheap and tried[-1].outcome == "penetrates more", tried
+    assert kept is base_cheap and tried[-1].outcome is Outcome.REFUSED and tried[-1].refusal == "penetrates more", tried
     # no time left: the first guess is solved (the budget rule starts one), no further one
     kept, tried, spent = escape(nlp, x, par, base, beyond, 0.0)
     assert len(beyond) > 1 and all(t.outcome == "not tried (sample budget spent)" for t in tried[1:]), tried
@@ -149,7 +149,7 @@ def test_failed_cold_start_applies_the_recovery_input_not_u0_and_stays_inside():
                           on_step=lambda k, res: results.append(res))
     first = results[0]
     assert first.status == "fallback_recovery", first.fallback_reason
-    assert "safe 4.11" in first.fallback_reason and first.predicted_violation <= 1e-3
+    assert first.fallback_predicted["safe"] == pytest.approx(4.11, abs=5e-3) and first.predicted_violation <= 1e-3
     assert keep_in_penetration(run.x) <= 1e-3
     assert all(r.status == "ok" for r in results[1:])
 

@@ -17,6 +17,7 @@ from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
 from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.nlp.search import Outcome
 from nmpc_avoid_ros.core.sample.candidates import Guess, guess_batch
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 
@@ -50,7 +51,7 @@ def count_guess_solves():
     per_step: list[int] = []
 
     def on_step(k, result):
-        per_step.append(sum(t.phase in ("escape", "passage_try") and not t.outcome.startswith("not tried")
+        per_step.append(sum(t.phase in ("escape", "passage_try") and t.outcome is not Outcome.NOT_TRIED
                             for t in result.search.tried))
 
     return per_step, on_step

@@ -107,8 +107,16 @@ def _certificate(samples: list[dict[str, str]]) -> dict[str, np.ndarray]:
     if not any("value_function" in v for v in samples):
         return {}
     out = {key: np.array([float(v.get(key, "nan")) for v in samples]) for key in CERTIFICATE_KEYS}
-    out["violated"] = np.array([v.get("certificate", "").startswith("violated") for v in samples])
+    out["violated"] = np.array([_violated(v) for v in samples])
     return out
+
+
+def _violated(values: dict[str, str]) -> bool:
+    """The certificate's verdict of one sample: `certificate_verdict`; bags from before it carry only the
+    rendered `certificate` line, whose first word is the verdict."""
+    if "certificate_verdict" in values:
+        return values["certificate_verdict"] == "violated"
+    return values.get("certificate", "").split(";")[0] == "violated"
 
 
 def _statuses(path: str | Path, samples: list[tuple[int, dict[str, str]]]) -> list[StepStatus]:

@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -86,12 +88,16 @@ def diagnostic_array(name: str, stamp: Time, level: bytes, message: str, values:
             "margin_unavoidable": str(result.margin_unavoidable),
             "fallback_reason": result.fallback_reason, "predicted_violation": f"{result.predicted_violation:.3g}",
             "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
+            "fallback_predicted": json.dumps(result.fallback_predicted),  # candidate -> predicted violation
             "horizon": str(result.horizon),
         })
     if cert is not None:
         values.update({"value_function": repr(cert.value_function), "decrease": repr(cert.decrease),
                        "decrease_bound": repr(cert.decrease_bound), "certificate_margin": repr(cert.margin),
                        "certificate_violations": str(cert.violations),
+                       # the verdict as data (violated, held, not_checked); `certificate` renders it for people
+                       "certificate_verdict": ("violated" if cert.violated else "held") if cert.checked
+                       else "not_checked",
                        "certificate": (("violated" if cert.violated else "checked") if cert.checked
                                        else f"not checked: {cert.reason}") + f"; V_N of the {cert.cost_source}"})
     status = DiagnosticStatus(level=level, name=f"{name}: nmpc", message=message, hardware_id=name)

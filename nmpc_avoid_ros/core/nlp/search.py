@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -77,9 +78,25 @@ class Candidate:
         return (not self.clear, self.cost)
 
 
+class Outcome(StrEnum):
+    """What became of a start (Tried.outcome); each member is its string, as in the diagnostics."""
+
+    #: the best so far when the search ended: the plan applied (or, in a later phase, its base)
+    KEPT = "kept"
+    #: usable but ranked below the kept one
+    WORSE = "worse"
+    #: not finite, or neither solved nor feasible to the tolerance
+    UNUSABLE = "unusable"
+    #: the sample's budget was spent before its turn
+    NOT_TRIED = "not tried (sample budget spent)"
+    #: `admit` refused it; Tried.refusal says why
+    REFUSED = "refused"
+
+
 @dataclass
 class Tried:
-    """One line of the report: a start, what its solve gave and what became of it."""
+    """One line of the report: a start, what its solve gave and what became of it (`outcome`; for a
+    refused one, `refusal`: why `admit` refused it)."""
 
     label: str
     phase: str
@@ -87,7 +104,8 @@ class Tried:
     cost: float = math.nan
     depth: float = math.nan
     seconds: float = 0.0
-    outcome: str = ""  # kept, unusable, worse, not tried (budget), or why `admit` refused it
+    outcome: Outcome | None = None
+    refusal: str = ""
 
 
 #: phases of a sample (SearchReport.phase)
@@ -132,12 +150,12 @@ class SearchReport:
             return self.phase.replace("_", " ")
         lines = [f"{self.phase}: kept {self.kept or 'none'}"]
         for t in self.tried:
-            if t.outcome.startswith("not tried"):
+            if t.outcome is Outcome.NOT_TRIED:
                 lines.append(f"{t.label}: {t.outcome}")
             elif math.isnan(t.cost):
                 lines.append(f"{t.label}: unusable ({t.solver_status})")
             else:
-                lines.append(f"{t.label}: cost {t.cost:.6g}, depth {t.depth:.2g}, {t.outcome}")
+                lines.append(f"{t.label}: cost {t.cost:.6g}, depth {t.depth:.2g}, {t.refusal or t.outcome}")
         if self.more_next_sample:
             lines.append(f"{self.more_next_sample} more next sample")
         return "; ".join(lines)
@@ -184,10 +202,10 @@ def search(starts: Iterable[Start], par: np.ndarray, time_left: float, report: S
     """
     best, last, spent, slowest = base, None, 0.0, 0.0
     best_line = next((line for line in reversed(report.tried) if base is not None and line.label == base.label
-                      and line.outcome == "kept"), None)
+                      and line.outcome is Outcome.KEPT), None)
     for start in starts:
         if last is not None and spent + slowest >= time_left:
-            report.tried.append(Tried(start.label, phase, outcome="not tried (sample budget spent)"))
+            report.tried.append(Tried(start.label, phase, outcome=Outcome.NOT_TRIED))
             continue
         candidate = last = solve_start(start, par, feasibility_tolerance)
         spent += candidate.seconds
@@ -196,17 +214,17 @@ def search(starts: Iterable[Start], par: np.ndarray, time_left: float, report: S
                      candidate.seconds)
         report.tried.append(line)
         if not candidate.usable:
-            line.outcome = "unusable"
+            line.outcome = Outcome.UNUSABLE
             continue
         refused = admit(candidate) if admit is not None else ""
         if refused:
-            line.outcome = refused
+            line.outcome, line.refusal = Outcome.REFUSED, refused
             continue
-        line.outcome = "worse"
+        line.outcome = Outcome.WORSE
         if best is None or candidate.rank() < best.rank():
             if best_line is not None:
-                best_line.outcome = "worse"
-            best, best_line, line.outcome = candidate, line, "kept"
+                best_line.outcome = Outcome.WORSE
+            best, best_line, line.outcome = candidate, line, Outcome.KEPT
         if stop_at_clear and best is candidate and candidate.clear:
             break
     return best, last, spent

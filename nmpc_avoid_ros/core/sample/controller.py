@@ -397,6 +397,7 @@ class NmpcController(RuntimeChanges):
             if result.margin_unavoidable:
                 why = "margin unavoidable (the regions themselves are avoidable)"
                 result.fallback_reason = f"{why}; {real.reason if real else 'plan: clear of them'}"
+                result.fallback_predicted = dict(real.predicted) if real else {}
                 sample.seconds += choice.solve_time
                 if real is None:
                     return result
@@ -407,6 +408,7 @@ class NmpcController(RuntimeChanges):
         result.region_unavoidable = choice.unavoidable
         result.predicted_violation = choice.violation
         if not result.margin_unavoidable:
+            result.fallback_predicted = dict(choice.predicted)
             why = "region unavoidable from the current state" if choice.unavoidable else "plan predicts penetration"
             result.fallback_reason = f"{why}; {choice.reason}"
         sample.seconds += choice.solve_time
@@ -453,7 +455,7 @@ class NmpcController(RuntimeChanges):
             result = StepResult(choice.inputs[0].copy(), choice.states, choice.inputs.copy(), nan_p, nan_n, u_a_out,
                                 math.nan, math.nan, math.nan, StepStatus(f"fallback_{choice.kind}"), status,
                                 iterations, 0.0, budget_cut)
-        result.fallback_reason = choice.reason
+        result.fallback_reason, result.fallback_predicted = choice.reason, dict(choice.predicted)
         result.predicted_violation = choice.violation
         result.horizon = 0 if last is None else last.nlp.layout.horizon
         return result

@@ -54,15 +54,23 @@ RECOVERY_REGULARISATION = 1e-6
 @dataclass
 class FallbackChoice:
     """The chosen candidate: its name, inputs [H, m], predicted states x(0..H) [H+1, n], its
-    predicted violation and one line saying why (every candidate's predicted violation)."""
+    predicted violation, every candidate's predicted violation (name -> region g / state units) over
+    `horizon` samples; `reason` renders them for people."""
 
     kind: str
     inputs: np.ndarray
     states: np.ndarray
     violation: float
-    reason: str
+    predicted: dict[str, float]
+    horizon: int
     solve_time: float = 0.0
     unavoidable: bool = False  # every candidate predicts a violation (see FallbackSelector.check_plan)
+
+    @property
+    def reason(self) -> str:
+        """One line: the kind applied and every candidate's predicted violation."""
+        others = ", ".join(f"{k} {v:.3g}" for k, v in self.predicted.items())
+        return f"{self.kind}: least predicted violation over {self.horizon} samples ({others})"
 
 
 class _StopAt(ca.Callback):
@@ -202,10 +210,9 @@ class FallbackSelector:
                 predicted["recovery"] = self.predict(x, inputs, par)
         least = max(VIOLATION_TOLERANCE, min(v for _, v in predicted.values()))
         kind = next(k for k in CANDIDATES if k in predicted and predicted[k][1] <= least)
-        others = ", ".join(f"{k} {predicted[k][1]:.3g}" for k in CANDIDATES if k in predicted)
-        reason = f"{kind}: least predicted violation over {H} samples ({others})"
         states, violation = predicted[kind]
-        return FallbackChoice(kind, sequences[kind], states, violation, reason, seconds)
+        every = {k: predicted[k][1] for k in CANDIDATES if k in predicted}
+        return FallbackChoice(kind, sequences[kind], states, violation, every, H, seconds)
 
     def check_plan(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray, end: float = math.inf
                    ) -> FallbackChoice | None:
@@ -223,9 +230,10 @@ class FallbackSelector:
         if plan_violation <= VIOLATION_TOLERANCE:
             return None
         choice = self.choose(x, par, plan_inputs, None, True, end=end)
+        # the 'shift' candidate here is the plan itself
+        choice.predicted = {("plan" if k == "shift" else k): v for k, v in choice.predicted.items()}
         if choice.kind == "shift":
             choice.kind = "plan"
-            choice.reason = "plan" + choice.reason[len("shift"):].replace("(shift ", "(plan ")
         choice.unavoidable = choice.violation > VIOLATION_TOLERANCE
         if not choice.unavoidable and plan_violation <= PLAN_OVERRIDE:
             return None

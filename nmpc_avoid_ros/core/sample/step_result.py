@@ -38,7 +38,8 @@ class StepResult:
         horizon: stages of the NLP solved (or attempted) at this sample: the regular N, or
             escape_horizon in the passage mode (0: no solve, e.g. `coast`).
         fallback_reason: for a fallback, which candidate was applied and every candidate's
-            predicted violation; predicted_violation: the applied one's (region g / state units).
+            predicted violation, for people; fallback_predicted: the same as data (candidate -> predicted
+            violation, region g / state units); predicted_violation: the applied one's.
         target: the output y* [p] the NLP tracked: y_t, or for a y_t out of reach its nearest
             reachable output (core/nlp/projection.py); None where no sample was solved (`coast`).
         region_unavoidable: the solved plan predicts a violation beyond VIOLATION_TOLERANCE (a
@@ -70,6 +71,7 @@ class StepResult:
     horizon: int = 0
     target: np.ndarray | None = None
     margin_unavoidable: bool = False
+    fallback_predicted: dict[str, float] = field(default_factory=dict)
     delay: float = 0.0
     measured_state: np.ndarray | None = None
 
