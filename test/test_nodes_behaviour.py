@@ -17,7 +17,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rosgraph import CONFIG
 from std_msgs.msg import Float64MultiArray
-from test_readme import readme_diagnostic_keys
+from test_readme import reference_diagnostic_keys
 from visualization_msgs.msg import Marker, MarkerArray
 
 from nmpc_avoid_ros.core.config.settings import ControllerSettings
@@ -97,7 +97,7 @@ def test_shipped_config_closes_the_paper_loop_in_real_time_once_a_target_arrives
     assert np.max(np.abs(samples[:, 0] * samples[:, 1])) <= 2.05
     assert {d["status"] for d in solved()} == {"ok"}
     assert solved()[-1]["mu"] == "1e+08"
-    assert readme_diagnostic_keys() <= set(solved()[-1]), readme_diagnostic_keys() - set(solved()[-1])
+    assert reference_diagnostic_keys() <= set(solved()[-1]), reference_diagnostic_keys() - set(solved()[-1])
     assert ctrl.stop(signal.SIGINT) == 0 and plant.stop(signal.SIGTERM) == 0
     assert "controller ready" in ctrl.output() and "plant ready" in plant.output()
 

@@ -1,4 +1,4 @@
-"""One declaration per setting: validation, read-only set, ROS descriptors and README tables derive from it."""
+"""One declaration per setting: validation, read-only set, ROS descriptors and the reference's tables derive from it."""
 
 from __future__ import annotations
 
@@ -26,12 +26,13 @@ from nmpc_avoid_ros.ros.parameters import (
     settings_specs,
     spec_of,
 )
-from nmpc_avoid_ros.tools.readme_tables import README, expected_tables, readme_tables
+from nmpc_avoid_ros.tools.readme_tables import README, REFERENCE, expected_tables, parameter_rows, reference_tables
 
 
-def test_readme_parameter_tables_are_the_declared_ones():
-    """Fails while README.md and the declarations differ (`make readme` rewrites the tables)."""
-    assert readme_tables(README.read_text()) == expected_tables()
+def test_reference_parameter_tables_are_the_declared_ones_and_the_readme_has_none():
+    """Fails while docs/reference.md and the declarations differ (`make readme` rewrites the tables)."""
+    assert reference_tables(REFERENCE.read_text()) == expected_tables()
+    assert parameter_rows(README.read_text()) == []
 
 
 def test_every_field_is_declared_and_the_derived_sets_follow_the_declarations():
@@ -109,7 +110,7 @@ def test_values_are_normalised_and_refused_alike_from_python_yaml_and_ros():
 
 
 def test_a_new_setting_is_one_declaration():
-    """Everything downstream of a declaration comes from it: kind, validation, descriptor, README row."""
+    """Everything downstream of a declaration comes from it: kind, validation, descriptor, reference row."""
 
     @dataclass(frozen=True)
     class Extra:
@@ -130,8 +131,16 @@ def test_a_new_setting_is_one_declaration():
 def test_make_readme_rewrites_a_stale_table_and_check_reports_it(tmp_path, capsys):
     from nmpc_avoid_ros.tools.readme_tables import main
 
-    stale = tmp_path / "README.md"
-    stale.write_text(README.read_text().replace("| `mu` | `100000000.0` | run time |", "| `mu` | `1.0` | run time |"))
+    stale = tmp_path / "reference.md"
+    declared = REFERENCE.read_text()
+    stale.write_text(declared.replace("| `mu` | `100000000.0` | run time |", "| `mu` | `1.0` | run time |"))
     assert main([str(stale), "--check"]) == 1 and "`mu`" in capsys.readouterr().out
-    assert main([str(stale)]) == 0 and stale.read_text() == README.read_text()
+    assert main([str(stale)]) == 0 and stale.read_text() == declared
+    assert main([str(stale), "--check"]) == 0
     assert main([str(tmp_path / "missing.md")]) == 2
+    # a parameter table in the README fails both modes (the front door lists none)
+    readme = tmp_path / "README.md"
+    row = next(line for line in declared.splitlines() if line.startswith("| `mu` |"))
+    readme.write_text(f"{README.read_text()}\n| parameter | default | change | meaning |\n|---|---|---|---|\n{row}\n")
+    assert main([str(stale), "--check", "--readme", str(readme)]) == 1
+    assert main([str(stale), "--readme", str(readme)]) == 1 and "`mu`" in capsys.readouterr().err

@@ -24,7 +24,7 @@ Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message
 as it arrives, so the ROS loop reproduces the offline loop exactly.
 
 Diagnostics: one DiagnosticArray per sample on /diagnostics, values as strings; the keys are listed in
-the README (the paragraph on `/diagnostics`). Latency compensation (nodes/command_timing.py,
+docs/reference.md (its **Diagnostics** paragraph). Latency compensation (nodes/command_timing.py,
 core/sample/latency.py): `state_age_ms`, `predicted_delay_ms`, `expected_latency_ms`, `late_commands`;
 `state` is the measured state, `planned_state` the one the plan starts from.
 

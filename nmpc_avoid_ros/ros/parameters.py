@@ -3,7 +3,7 @@
 The controller's parameters are declared once, in core/config/settings.py (core/config/schema.py explains how);
 here each declaration becomes a ParamSpec: a ParameterDescriptor with the description, the
 allowed values, the range and read_only for what is not run time. The plant and the recorder
-declare their ParamSpecs directly. `markdown_table` writes any node's table for the README.
+declare their ParamSpecs directly. `markdown_table` writes any node's table for docs/reference.md.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ class ParamSpec:
     float_range: tuple[float, float] | None = None
     int_range: tuple[int, int] | None = None
     choices: tuple[str, ...] = ()
-    #: the allowed values in words, for the README (core settings: their declared rule)
+    #: the allowed values in words, for docs/reference.md (core settings: their declared rule)
     rule: str = ""
 
     def descriptor(self) -> ParameterDescriptor:
@@ -114,7 +114,7 @@ def _declared(values: Mapping[str, Any], declared: Mapping[str, Setting]) -> dic
 
 
 def markdown_table(specs: Iterable[ParamSpec]) -> str:
-    """The README's parameter table of one node: parameter, default, change, meaning."""
+    """docs/reference.md's parameter table of one node: parameter, default, change, meaning."""
     rows = ["| parameter | default | change | meaning |", "|---|---|---|---|"]
     for spec in specs:
         if spec.default is None:

@@ -12,14 +12,14 @@ tuple[str, ...], optionally `| None` for "unset"). Everything else is derived fr
       a change needs a new controller (an NLP or solver rebuild); `runtime=True` means it may
       change while the controller runs, without a rebuild;
     - the ROS parameter descriptors (ros/parameters.py: type, description, range, read_only);
-    - the README's parameter tables (tools/readme_tables.py writes them; a test keeps them equal).
+    - the parameter tables of docs/reference.md (tools/readme_tables.py writes them; a test keeps them equal).
 
 Adding a setting is a one-place change:
     1. add the field with `setting(...)` to `ControllerSettings` (core/config/settings.py; it then also
        enters `structure_key` unless runtime) or, for a parameter only the controller node uses,
        to `NodeSettings` there;
     2. use it where it acts (the NLP build, the controller step, or the node);
-    3. run `make readme` to regenerate the README tables (test_settings_schema.py fails until then).
+    3. run `make readme` to regenerate the tables of docs/reference.md (test_settings_schema.py fails until then).
 """
 
 from __future__ import annotations
