@@ -82,7 +82,7 @@ def test_round_trip_regions_to_markers_to_store() -> None:
     ]
     store = RegionStore()
     report = store.apply(regions_to_markers(regions, stamp=12.5), now=0.0)
-    assert report == ApplyReport(applied=4, deleted=0, rejected=[], changed=True)
+    assert report == ApplyReport(applied=4, deleted=0, rejected=[], changed=True, keys_changed=True)
     active = store.active(now=1.0)
     # sorted by (ns, id) = the order given
     assert len(active) == 4
@@ -209,10 +209,10 @@ def test_modify_replaces_and_delete_removes_by_key() -> None:
     store.apply(array(marker(ns="a", id_=1), marker(ns="b", id_=1), marker(ns="a", id_=2)), now=0.0)
     report = store.apply(array(marker(ns="a", id_=1, pos=(5.0, 5.0))), now=0.0)  # MODIFY == ADD
     assert Marker.MODIFY == Marker.ADD
-    assert (report.applied, report.changed) == (1, True)
+    assert (report.applied, report.changed, report.keys_changed) == (1, True, False)  # moved, same set
     assert store.active(0.0)[0].center == (5.0, 5.0)
     report = store.apply(array(delete_marker("a", 1), delete_marker("a", 99)), now=0.0)
-    assert (report.deleted, report.rejected, report.changed) == (1, [], True)
+    assert (report.deleted, report.rejected, report.changed, report.keys_changed) == (1, [], True, True)
     assert [k for k, _ in store.active_items(0.0)] == [("a", 2), ("b", 1)]
     # replacing with another kind moves the key from ellipse to polygon
     store.apply(array(marker(Marker.CUBE, ns="a", id_=2)), now=0.0)

@@ -323,7 +323,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
                 self.counts["obstacle_resets"] += 1
                 self.last_obstacle_issue = f"reset {ns}/{marker_id}: {reason}"
                 self.log_throttled("obstacle_reset", "warning", f"marker {ns}/{marker_id}: {reason}")
-            if report.changed:
+            if report.keys_changed:  # once per change of the set, not per message of a moving feed
                 self.log_throttled("obstacles", "info", f"obstacles received: {len(self.store)} region(s) stored")
 
     @locked

@@ -59,7 +59,9 @@ class ApplyReport:
 
     applied: ADD markers that added or replaced a region; deleted: regions removed by DELETE or
     DELETEALL; rejected: (ns, id, reason) per refused marker (id MESSAGE_ID = the whole message);
-    changed: the set of stored regions differs from before the message; resets: (ns, id, reason)
+    changed: the stored regions differ from before the message (a moving one that moved counts);
+    keys_changed: which regions are stored (their ns/id) differs (what a log line reports: a feed of
+    moving obstacles changes the regions every message, the set rarely); resets: (ns, id, reason)
     per accepted marker whose velocity estimate was reset (a jump, a skewed or decreasing stamp).
     """
 
@@ -67,6 +69,7 @@ class ApplyReport:
     deleted: int = 0
     rejected: list[tuple[str, int, str]] = field(default_factory=list)
     changed: bool = False
+    keys_changed: bool = False
     resets: list[tuple[str, int, str]] = field(default_factory=list)
 
 
@@ -175,7 +178,7 @@ class RegionStore:
         # velocity tracks live as long as their regions; checked after the whole message, so a
         # DELETEALL followed by the same keys (a publisher replacing its set) keeps the estimates
         self.motion.retain(after)
-        report.changed = after != before
+        report.changed, report.keys_changed = after != before, after.keys() != before.keys()
         if report.changed:
             self._revision += 1
         return report
