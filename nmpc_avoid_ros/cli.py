@@ -23,7 +23,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("nmpc_avoid_ros.bench.main", "solver paths vs. Opti + IPOPT and do-mpc, one process -> JSON"),
     "campaign": ("nmpc_avoid_ros.evaluation.campaign.cli",
                  "Monte Carlo campaign over random scenarios (local or on Dask) -> JSON + plots"),
-    "send": ("nmpc_avoid_ros.tools.send", "a target, an obstacle or a parameter to a running controller, acknowledged"),
+    "send": ("nmpc_avoid_ros.tools.send",
+             "a target, a goal pose, an obstacle or a parameter to a running controller, acknowledged"),
 }
 
 

@@ -1,7 +1,8 @@
-"""`send`: a target, an obstacle change or a run-time parameter to a running controller, without the
-`ros2` CLI (it is not among the PyPI wheels).
+"""`send`: a target, a goal pose, an obstacle change or a run-time parameter to a running controller,
+without the `ros2` CLI (it is not among the PyPI wheels).
 
     python -m nmpc_avoid_ros send target 5                 # y_t on `target` (p values: send target 8 6)
+    python -m nmpc_avoid_ros send goal 3 2 [1.57]          # PoseStamped on `goal_pose` (robot interface), yaw rad
     python -m nmpc_avoid_ros send obstacle ellipse --center 2 -0.5 --axes 0.4 0.2 [--yaw 0] [--id 1]
     python -m nmpc_avoid_ros send obstacle box --center 1 1 --size 0.6 0.4 [--yaw 0.3]
     python -m nmpc_avoid_ros send obstacle polygon --vertices 0 0 1 0 1 1
@@ -16,30 +17,42 @@ sides), a polygon a closed LINE_STRIP; `--ns` (default `send`) and `--id` (defau
 region, `--frame` its plane (`state` or `output`). A new marker under the same (ns, id) replaces
 the old one.
 
-A message is published once on the latched QoS the package's publishers use (reliable, transient
-local, depth 1) after a subscription of the controller (`--node`, default `controller`) matched,
-and every other subscription the graph shows (a recorder's), with the graph unchanged for
-GRAPH_SETTLE s (up to GRAPH_GRACE s more); `send` returns only when every matched reader
-acknowledged it, so the process may exit at once without losing it (the line printed names the
-nodes). A parameter goes through the node's
-`<node>/set_parameters` service with the type the node declared (`mu 0` is sent as 0.0). Each wait
-is bounded by `--timeout` s, except for a controller that is starting: the node is in the graph (it
+A goal is a geometry_msgs/PoseStamped on `goal_pose` (what RViz's "2D Goal Pose" sends): position
+(X, Y, 0), the orientation the rotation by YAW about z (default 0), header.frame_id the controller's
+`odom_frame` parameter (read just before the publish; `odom` if it has none; `--frame` sets it), the
+stamp now. Only the robot interface (`interface: robot`) subscribes `goal_pose`; a controller of the
+array interface is recognised once the graph shows its `target` subscription without a `goal_pose`
+one and its `interface` parameter says so: `send goal` then fails at once (exit 1) naming the interface.
+Both interfaces subscribe `target` (nodes/controller.py), so `send target` reaches either.
+
+A message is published once on the latched QoS the package's publishers use (reliable, transient local,
+depth 1) after a subscription of the controller (`--node`, default `controller`) matched, and every
+other subscription the graph shows (a recorder's), with the graph unchanged for GRAPH_SETTLE s (up to
+GRAPH_GRACE s more); `send` returns only when every matched reader acknowledged it, so the process may
+exit at once without losing it (the line printed names the nodes). It lives at least DISCOVERY_WINDOW s:
+a participant that was running is found up to one Fast DDS announcement period (3 s) after `send`
+starts, and a reader found after the publish gets the latched message from `send`'s writer and is waited
+for too. A reader that does not acknowledge it within `--timeout` s is named in the one line on stderr
+(exit 1): the controller, if its diagnostics did not count the message, else the other readers (a
+recorder), while the line says the controller had it and its verdict. A parameter goes through the
+node's `<node>/set_parameters` service with the type the node declared (`mu 0` is sent as 0.0). Each
+wait is bounded by `--timeout` s, except for a controller that is starting: the node is in the graph (it
 is created before its solver is built) but has no subscription yet or does not answer (a first start
-compiles its solver's code for a minute or two and logs so); `send` says so on stderr and waits for
-it up to STARTING_TIMEOUT s.
+compiles its solver's code for a minute or two and logs so); `send` says so on stderr and waits for it
+up to STARTING_TIMEOUT s.
 
 `send` knows the controller's answer (tools/send_verdict.py): before a target goes out, its size is
 checked against the controller's model (its `model` parameter, p values; `--no-check` skips this);
 after the publish, `send` waits (up to `--timeout` s) until the controller's /diagnostics count the
-message and reads its verdict there (`target_verdict`, `obstacles_verdict`, with the reason). A
-controller that publishes no diagnostics (inactive, or lockstep without a plant) gives no verdict:
-one line on stderr says so and the message counts as delivered.
+message and reads its verdict there (`target_verdict`, `goal_pose_verdict`, `obstacles_verdict`, with
+the reason). A controller that publishes no diagnostics (inactive, or lockstep without a plant) gives
+no verdict: one line on stderr says so and the message counts as delivered.
 
 Exit codes: 0 delivered and accepted (or set; or delivered with no verdict to read, said on stderr);
-1 no controller listening (another reader is not enough), no acknowledgement, or the controller
-refused it: the message (its reason from the diagnostics) or the parameter (one line on stderr says
-why); 2 bad arguments, among them a target of the wrong size for the controller's model (the line
-names the size it takes).
+1 no controller listening (another reader is not enough; a goal to a controller without `goal_pose`),
+a reader that did not acknowledge it, or the controller refused it: the message (its reason from the
+diagnostics) or the parameter (one line on stderr says why); 2 bad arguments, among them a target of
+the wrong size for the controller's model (the line names the size it takes).
 """
 
 from __future__ import annotations
@@ -52,7 +65,8 @@ from collections.abc import Sequence
 from typing import Any
 
 from ..core.errors import NmpcError
-from .send_verdict import ControllerWatch
+from .send_params import parameter_value
+from .send_verdict import ControllerWatch, Verdict
 
 PROG = "python -m nmpc_avoid_ros send"
 #: default --timeout, s
@@ -64,6 +78,13 @@ GRAPH_GRACE = 4.0
 #: finds the others one by one, measured up to 1.1 s apart on one machine (a recorder found after the
 #: controller missed messages in test/test_send_dds.py with 0 and with 0.5 s)
 GRAPH_SETTLE = 1.5
+#: s from `send`'s start within which it finds every participant that was running before it: Fast DDS
+#: announces a participant again every 3 s, and a fresh one found the recorder up to 3.0 s after the
+#: controller (3 of 20 `send goal` calls before this waited missed the recorder with nothing said; issue
+#: 33). A latched message reaches a reader found late only while `send` lives: it stays that long.
+DISCOVERY_WINDOW = 3.5
+#: the node name rmw reports for an endpoint whose participant's node list has not arrived yet
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 #: s `send` waits at most for a node that is in the graph but not serving yet (a first start compiles)
 STARTING_TIMEOUT = 300.0
 _noted_starting: set[str] = set()  # nodes `starting` said it waits for
@@ -126,9 +147,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0],
                                      epilog="ROS arguments follow --ros-args (e.g. -r __ns:=/robot1).")
-    commands = parser.add_subparsers(dest="what", required=True, metavar="{target,obstacle,delete,clear,param}")
+    commands = parser.add_subparsers(dest="what", required=True,
+                                     metavar="{target,goal,obstacle,delete,clear,param}")
     target = commands.add_parser("target", parents=[common], help="a target y_t on `target`")
     target.add_argument("values", type=finite, nargs="+", metavar="Y", help="the target's p values")
+    goal = commands.add_parser("goal", parents=[common],
+                               help="a goal pose (PoseStamped) on `goal_pose`: the robot interface's target")
+    goal.add_argument("x", type=finite, metavar="X", help="goal position x, m")
+    goal.add_argument("y", type=finite, metavar="Y", help="goal position y, m")
+    goal.add_argument("yaw", type=finite, nargs="?", default=0.0, metavar="YAW",
+                      help="goal heading, rad about z (default 0)")
+    goal.add_argument("--frame", default=None,
+                      help="header.frame_id (default: the controller's odom_frame parameter, else odom)")
 
     obstacle = commands.add_parser("obstacle", help="add or replace a region on `obstacles`")
     shapes = obstacle.add_subparsers(dest="shape", required=True, metavar="{ellipse,box,polygon}")
@@ -178,6 +208,18 @@ def target_message(values: Sequence[float]) -> Any:
     return Float64MultiArray(data=[float(v) for v in values])
 
 
+def goal_message(x: float, y: float, yaw: float) -> Any:
+    """The PoseStamped of a goal at (x, y) heading `yaw`; its frame and stamp are set just before the publish."""
+    from geometry_msgs.msg import PoseStamped
+
+    from ..ros.markers import yaw_to_quaternion
+
+    msg = PoseStamped()
+    msg.pose.position.x, msg.pose.position.y = float(x), float(y)
+    msg.pose.orientation = yaw_to_quaternion(float(yaw))
+    return msg
+
+
 def obstacle_message(args: argparse.Namespace) -> Any:
     """The one-marker MarkerArray of `send obstacle ...`; RegionError (an NmpcError) if the shape is invalid."""
     from visualization_msgs.msg import MarkerArray
@@ -222,86 +264,13 @@ def topic_message(args: argparse.Namespace) -> tuple[str, Any, str]:
     """(topic, message, what it is in words) of a topic command."""
     if args.what == "target":
         return "target", target_message(args.values), f"target {[float(v) for v in args.values]}"
+    if args.what == "goal":
+        return "goal_pose", goal_message(args.x, args.y, args.yaw), f"goal [{args.x:g}, {args.y:g}] yaw {args.yaw:g}"
     if args.what == "obstacle":
         return "obstacles", obstacle_message(args), f"{args.shape} (ns {args.ns!r}, id {args.id})"
     if args.what == "delete":
         return "obstacles", delete_message(args.ns, args.id), f"DELETE (ns {args.ns!r}, id {args.id})"
     return "obstacles", clear_message(), "DELETEALL"
-
-
-# --- parameter values ------------------------------------------------------------------------------
-
-_TRUE, _FALSE = ("true", "yes", "on"), ("false", "no", "off")
-
-
-def _scalar(text: str, kind: str, name: str) -> Any:
-    """One value of a parameter of `kind` ('double', 'integer', 'bool', 'string')."""
-    if kind == "string":
-        return text
-    if kind == "bool":
-        if text.lower() in _TRUE or text.lower() in _FALSE:
-            return text.lower() in _TRUE
-        raise NmpcError(f"{name} is a bool: true or false, got {text!r}")
-    try:
-        value = int(text) if kind == "integer" else float(text)
-    except ValueError:
-        raise NmpcError(f"{name} takes {'integers' if kind == 'integer' else 'numbers'}, got {text!r}") from None
-    if kind == "double" and not math.isfinite(value):
-        raise NmpcError(f"{name} must be finite, got {text!r}")
-    return value
-
-
-def _infer(texts: Sequence[str]) -> str:
-    """The kind of untyped values, as YAML reads them (ros2 param set does the same)."""
-    def kind(text: str) -> str:
-        if text.lower() in _TRUE + _FALSE:
-            return "bool"
-        for k, convert in (("integer", int), ("double", float)):
-            try:
-                convert(text)
-                return k
-            except ValueError:
-                pass
-        return "string"
-
-    kinds = {kind(t) for t in texts}
-    if kinds == {"integer", "double"}:
-        return "double"
-    return kinds.pop() if len(kinds) == 1 else "string"
-
-
-def _items(values: Sequence[str]) -> list[str]:
-    """The values of an array: several arguments, or one '[a, b]' / 'a,b'."""
-    if len(values) == 1:
-        text = values[0].strip()
-        if text.startswith("[") and text.endswith("]"):
-            text = text[1:-1]
-        return [v.strip() for v in text.split(",") if v.strip()] if ("," in text or values[0].strip() != text) \
-            else [text] if text else []
-    return list(values)
-
-
-def parameter_value(name: str, type_: int, values: Sequence[str]) -> Any:
-    """The rclpy Parameter `name` from command-line texts, in the declared ParameterType `type_` (0:
-    not set, inferred); NmpcError with the reason for a wrong number or kind of value."""
-    from rclpy.parameter import Parameter
-
-    T = Parameter.Type
-    scalars = {T.DOUBLE: "double", T.INTEGER: "integer", T.BOOL: "bool", T.STRING: "string"}
-    arrays = {T.DOUBLE_ARRAY: "double", T.INTEGER_ARRAY: "integer", T.BOOL_ARRAY: "bool", T.STRING_ARRAY: "string"}
-    declared = T(type_)
-    if declared == T.NOT_SET:  # untyped: one value is a scalar, several (or [..]) an array
-        items = _items(values)
-        kind = _infer(items)
-        is_array = len(values) > 1 or values[0].strip().startswith("[")
-        declared = {v: k for k, v in (arrays if is_array else scalars).items()}[kind]
-    if declared in scalars:
-        if len(values) != 1:
-            raise NmpcError(f"{name} takes one value, got {len(values)}: {' '.join(values)}")
-        return Parameter(name, declared, _scalar(values[0], scalars[declared], name))
-    if declared in arrays:
-        return Parameter(name, declared, [_scalar(v, arrays[declared], name) for v in _items(values)])
-    raise NmpcError(f"{name} has type {declared.name}, which send cannot set")
 
 
 # --- ROS -------------------------------------------------------------------------------------------
@@ -334,14 +303,19 @@ def starting(node: Any, name: str, begin: float, what: str) -> bool:
 
 
 def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: float,
-                    check: Any = None) -> tuple[str, list[str]]:
+                    check: Any = None, absent: Any = None, born: float | None = None) -> tuple[str, list[str], bool]:
     """Publish `message` once on `topic` (LATCHED_QOS) once a subscription of the node `reader` (fully
     qualified) matched, and wait until every matched reader acknowledged it: (the resolved topic, the
-    subscribing nodes). SendError otherwise.
+    subscribing nodes, whether all of them acknowledged it within `timeout`). SendError if `reader`
+    never subscribed.
 
     Another reader (a recorder) matching first is not enough: the message must reach `reader`, and a
     latched message is gone for a late reader once this process exits. `check()`, if given, runs just
-    before the publish (the controller is configured then); what it raises stops the send."""
+    before the publish (the controller is configured then); what it raises stops the send.
+    `absent(topic)`, if given, is asked while `reader` has no subscription: the reason it will have none
+    (its interface has no such topic), which ends the wait at once, or None. After the publish it stays
+    until DISCOVERY_WINDOW s after `born` (monotonic s, when the node was made; default now), so that a
+    reader discovered late still gets the message, and waits for its acknowledgement too."""
     from rclpy.duration import Duration
 
     from ..ros.parameters import LATCHED_QOS
@@ -349,6 +323,7 @@ def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: f
     publisher = node.create_publisher(type(message), topic, LATCHED_QOS)
     name = publisher.topic_name
     end = time.monotonic() + timeout
+    born = time.monotonic() if born is None else born
 
     def readers() -> list[str]:
         return [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in node.get_subscriptions_info_by_topic(name)
@@ -356,6 +331,8 @@ def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: f
 
     begin = time.monotonic()
     while reader not in readers() or publisher.get_subscription_count() == 0:
+        if absent is not None and (why := absent(name)):
+            raise SendError(why)
         if time.monotonic() >= end:
             if not starting(node, reader, begin, f"subscription on {name}"):
                 raise SendError(f"no subscriber of {reader} on {name} after {time.monotonic() - begin:.1f} s (is "
@@ -378,14 +355,48 @@ def publish_latched(node: Any, topic: str, message: Any, reader: str, timeout: f
         time.sleep(0.02)
     listed, matched = len(readers()), publisher.get_subscription_count()
     if matched < listed:
-        print(f"send: {name}: {matched} of the {listed} subscriptions the graph lists matched; the others may "
-              f"not get this message", file=sys.stderr)
+        print(f"send: {name}: {matched} of the {listed} subscriptions the graph lists matched "
+              f"({unmatched_readers(node, name)}); the others may not get this message", file=sys.stderr)
     if check is not None:
         check()
     publisher.publish(message)
-    if not publisher.wait_for_all_acked(Duration(seconds=timeout)):
-        raise SendError(f"{name}: the subscribers did not acknowledge the message in {timeout:.1f} s")
-    return name, sorted(set(readers()))
+    acknowledged = publisher.wait_for_all_acked(Duration(seconds=timeout))
+    # a participant discovered late (up to one announcement period after this one started) takes the
+    # message from this writer's history once it matches: stay, then wait for every reader's acknowledgement
+    def unsettled() -> bool:
+        names = readers()
+        return UNKNOWN_NODE in " ".join(names) or publisher.get_subscription_count() < len(names)
+
+    linger = born + DISCOVERY_WINDOW
+    while (now := time.monotonic()) < linger or (unsettled() and now < linger + GRAPH_GRACE):
+        time.sleep(0.02)
+    acknowledged = acknowledged and publisher.wait_for_all_acked(Duration(seconds=timeout))
+    return name, sorted(set(readers())), acknowledged
+
+
+def unmatched_readers(node: Any, topic: str) -> str:
+    """Words naming the readers of `topic` that may not have matched: those whose QoS is incompatible
+    with LATCHED_QOS, else every reader the graph lists (rclpy does not say which matched)."""
+    from rclpy.qos import QoSCompatibility, qos_check_compatible
+
+    from ..ros.parameters import LATCHED_QOS
+
+    infos = [i for i in node.get_subscriptions_info_by_topic(topic) if i.node_name != node.get_name()]
+    names = [f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos]
+    refused = sorted({n for n, i in zip(names, infos)
+                      if qos_check_compatible(LATCHED_QOS, i.qos_profile)[0] == QoSCompatibility.ERROR})
+    return f"QoS incompatible: {', '.join(refused)}" if refused else f"among {', '.join(sorted(set(names)))}"
+
+
+def not_acknowledged(name: str, nodes: list[str], reader: str, verdict: Verdict | None, timeout: float) -> str:
+    """The stderr line naming who did not acknowledge the message on `name` in `timeout` s: with the
+    controller's `verdict` (it counted the message), the other readers; without it, the controller too."""
+    others = [n for n in nodes if n != reader]
+    if verdict is not None:
+        who = ", ".join(others) or f"a second reader of {reader}"
+        return (f"{name}: not acknowledged in {timeout:.1f} s by {who} (it may not have the message); {reader} "
+                f"counted it: {verdict.verdict}{f' ({verdict.reason})' if verdict.reason else ''}")
+    return f"{name}: not acknowledged in {timeout:.1f} s by {', '.join([reader, *others])} (one or more of them)"
 
 
 def set_parameter(node: Any, executor: Any, target_node: str, name: str, values: Sequence[str],
@@ -428,6 +439,7 @@ def send(args: argparse.Namespace, ros_args: Sequence[str]) -> str:
     from rclpy.executors import SingleThreadedExecutor
 
     message = None if args.what == "param" else topic_message(args)  # bad shapes fail before any DDS
+    born = time.monotonic()
     context = rclpy.Context()
     rclpy.init(args=["send", *ros_args], context=context)
     try:
@@ -439,8 +451,12 @@ def send(args: argparse.Namespace, ros_args: Sequence[str]) -> str:
             if message is not None:
                 topic, msg, what = message
                 watch = ControllerWatch(node, executor, node_name(node, args.node), topic)
-                name, nodes = publish_latched(node, topic, msg, watch.reader, args.timeout,
-                                              lambda: watch.prepare(args, args.timeout))
+                name, nodes, acknowledged = publish_latched(node, topic, msg, watch.reader, args.timeout,
+                                                            lambda: watch.prepare(args, args.timeout, msg),
+                                                            lambda name: watch.absent(name, args.timeout), born)
+                if not acknowledged:
+                    verdict = None if watch.before is None else watch.verdict(watch.before, args.timeout)
+                    raise SendError(not_acknowledged(name, nodes, watch.reader, verdict, args.timeout))
                 line = f"send: {what} on {name}, acknowledged by {', '.join(nodes) or 'its subscribers'}"
                 return line + watch.outcome(what, args.timeout)  # SendError if the controller refused it
             remote, value = set_parameter(node, executor, args.node, args.name, args.values, args.timeout)

@@ -2,7 +2,10 @@
 its verdict on the message after.
 
 Before: the controller's `model` and `sample_time` through its parameter service; a target whose size
-is not the model's p is refused with exit 2 before it is published (`--no-check` skips this).
+is not the model's p is refused with exit 2 before it is published (`--no-check` skips this). A goal
+takes the controller's `odom_frame` as its frame. While `send` waits for the controller's subscription,
+a controller that subscribes `target` but not `goal_pose` is asked its `interface` once: `array` (it
+will never subscribe `goal_pose`) ends `send goal` at once, naming the interface.
 After: the controller's /diagnostics carry, per latched input, `<input>_received`, `<input>_verdict`
 and `<input>_reason` (nodes/controller_inputs.py). `send` notes the count before it publishes and
 waits until a diagnostics message of the controller counts one more: the verdict there is the one on
@@ -20,6 +23,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..core.errors import NmpcError
+
+#: inputs only one interface subscribes (nodes/controller.py): topic -> that interface
+INTERFACE_INPUTS = {"goal_pose": "robot"}
+#: frame of a goal when the controller has no `odom_frame` parameter (the controller's default)
+DEFAULT_ODOM_FRAME = "odom"
 
 
 @dataclass(frozen=True)
@@ -43,6 +51,7 @@ class ControllerWatch:
         self.latest: dict[str, str] | None = None  # the last values of the controller's status
         self.sample_time = 1.0  # s, until read from the controller
         self.before: int | None = None  # the input's count before the publish (None: no diagnostics)
+        self.interface: str | None = None  # the controller's `interface` once asked ("" if it did not say)
         self.subscription = node.create_subscription(DiagnosticArray, "/diagnostics", self._diagnostics, STREAM_QOS)
 
     def _diagnostics(self, msg: Any) -> None:
@@ -88,6 +97,42 @@ class ControllerWatch:
             raise NmpcError(f"target: {self.reader}'s model {model} takes {p} value{'s' * (p != 1)} (p = {p}), "
                             f"got {len(values)}: {' '.join(f'{v:g}' for v in values)}")
 
+    def address_goal(self, msg: Any, frame: str | None, timeout: float) -> None:
+        """Set the goal's header: `frame`, else the controller's `odom_frame` (else `odom`), and the stamp now."""
+        from .send import SendError
+
+        try:
+            params = self.parameters(["odom_frame", "sample_time"], timeout)
+        except SendError:  # a reader without parameter services: the robot interface's default frame
+            params = {}
+        self.sample_time = float(params.get("sample_time") or self.sample_time)
+        msg.header.frame_id = frame or str(params.get("odom_frame") or DEFAULT_ODOM_FRAME)
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+
+    def absent(self, topic: str, timeout: float) -> str | None:
+        """While the controller has no subscription on `topic` (resolved): why it never will (its
+        `interface` has no such input), or None. Asked once, when the graph shows the controller's
+        `target` subscription without one on `topic` (every interface subscribes `target`)."""
+        needs = INTERFACE_INPUTS.get(self.name)
+        if needs is None or self.interface is not None:
+            return None
+        namespace, _, short = self.reader.rpartition("/")
+        try:
+            subscribed = [t for t, _ in self.node.get_subscriber_names_and_types_by_node(short, namespace or "/")]
+        except Exception:  # noqa: BLE001 - not in the graph (yet): rclpy raises NodeNameNonExistentError
+            return None
+        if topic in subscribed or not any(t.rsplit("/", 1)[-1] == "target" for t in subscribed):
+            return None
+        try:
+            self.interface = str(self.parameters(["interface"], timeout).get("interface") or "")
+        except NmpcError:  # no parameter services: wait for the subscription as before
+            self.interface = ""
+        if self.interface and self.interface != needs:
+            return (f"{self.reader} has no {self.name} subscription: its interface is {self.interface!r}, and "
+                    f"{self.name} is the {needs} interface's input (interface: {needs}); send it a target "
+                    f"instead (send target ...)")
+        return None
+
     def baseline(self, timeout: float) -> int | None:
         """The controller's count of messages on the input before `send` publishes (the diagnostics
         received so far, or the next within two samples and `timeout`); None if it publishes none."""
@@ -95,11 +140,13 @@ class ControllerWatch:
         self._spin(lambda: self.latest is not None, min(timeout, 2 * self.sample_time + 1.0))
         return None if self.latest is None else int(self.latest[f"{self.name}_received"])
 
-    def prepare(self, args: Any, timeout: float) -> None:
-        """Just before the publish: check a target against the model (unless --no-check) and note the
-        controller's count of the input's messages."""
+    def prepare(self, args: Any, timeout: float, msg: Any = None) -> None:
+        """Just before the publish: check a target against the model (unless --no-check), address a goal
+        `msg`, and note the controller's count of the input's messages."""
         if args.what == "target" and not args.no_check:
             self.check_target(list(args.values), timeout)
+        if args.what == "goal":
+            self.address_goal(msg, args.frame, timeout)
         self.before = self.baseline(timeout)
 
     def verdict(self, before: int, timeout: float) -> Verdict | None:
