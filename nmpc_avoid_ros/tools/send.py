@@ -66,7 +66,7 @@ from typing import Any
 
 from ..core.errors import NmpcError
 from .send_params import parameter_value
-from .send_verdict import ControllerWatch, Verdict
+from .send_verdict import ControllerWatch, SendError, Verdict
 
 PROG = "python -m nmpc_avoid_ros send"
 #: default --timeout, s
@@ -90,10 +90,6 @@ STARTING_TIMEOUT = 300.0
 _noted_starting: set[str] = set()  # nodes `starting` said it waits for
 #: ns of the markers `send` makes unless --ns
 DEFAULT_NS = "send"
-
-
-class SendError(NmpcError):
-    """Nothing to send to, no acknowledgement, or a refused parameter: the one line `send` prints."""
 
 
 # --- arguments -------------------------------------------------------------------------------------

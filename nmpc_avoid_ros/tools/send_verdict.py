@@ -30,6 +30,10 @@ INTERFACE_INPUTS = {"goal_pose": "robot"}
 DEFAULT_ODOM_FRAME = "odom"
 
 
+class SendError(NmpcError):
+    """Nothing to send to, no acknowledgement, or a refused parameter: the one line `send` prints."""
+
+
 @dataclass(frozen=True)
 class Verdict:
     """The controller's verdict on the message `send` published (`accepted` or `refused`)."""
@@ -71,8 +75,6 @@ class ControllerWatch:
         from rclpy.parameter import parameter_value_to_python
         from rclpy.parameter_client import AsyncParameterClient
 
-        from .send import SendError
-
         client = AsyncParameterClient(self.node, self.reader)
         if not client.wait_for_services(timeout_sec=timeout):
             raise SendError(f"no parameter service of {self.reader} after {timeout:.1f} s to check the message "
@@ -99,8 +101,6 @@ class ControllerWatch:
 
     def address_goal(self, msg: Any, frame: str | None, timeout: float) -> None:
         """Set the goal's header: `frame`, else the controller's `odom_frame` (else `odom`), and the stamp now."""
-        from .send import SendError
-
         try:
             params = self.parameters(["odom_frame", "sample_time"], timeout)
         except SendError:  # a reader without parameter services: the robot interface's default frame
@@ -163,8 +163,6 @@ class ControllerWatch:
     def outcome(self, what: str, timeout: float) -> str:
         """After the publish: what to add to send's line ("; accepted by ..."), SendError if the controller
         refused it; no verdict to read: a line on stderr, and "" (delivered)."""
-        from .send import SendError
-
         found = None if self.before is None else self.verdict(self.before, timeout)
         if found is None:
             why = "publishes no diagnostics" if self.before is None else f"did not count it in {timeout:.1f} s"
