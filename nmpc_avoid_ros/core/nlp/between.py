@@ -28,10 +28,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import casadi as ca
-import numpy as np
 
 if TYPE_CHECKING:
-    from .tracking import ProblemParts
+    from .parts import ProblemParts
 
 #: share of c^2 a sub-step row carries for a chord to another sub-step state, and for one to a sample state
 INNER_CHORD, OUTER_CHORD = 0.25, 1.0
@@ -52,18 +51,6 @@ def between_samples(parts: ProblemParts, x_start: ca.SX, points: ca.SX, u: ca.SX
     share = [OUTER_CHORD if i in (0, steps - 1) else INNER_CHORD for i in range(steps)]
     return [parts.avoidance(states[j], u, times[j]) + share[j - 1] * chords[j - 1] + share[j] * chords[j]
             for j in range(1, steps)]
-
-
-def keep_in_bends(expressions: list[ca.SX], x: ca.SX, u: ca.SX) -> np.ndarray:
-    """Per keep-in expression g(x, u), the largest b with g along a chord <= (1 - t) g(a) + t g(b) + t (1 - t)
-    b |b - a|^2 (core/nlp/between.py): for a quadratic g, max(0, largest eigenvalue of -H / 2), H its constant
-    Hessian in x (|x1 x2| <= 2: 1/2; a convex g: 0); 0 for an expression that is not quadratic in x."""
-    bends = np.zeros(len(expressions))
-    for i, g in enumerate(expressions):
-        hessian = ca.hessian(g, x)[0]
-        if not ca.depends_on(hessian, ca.vertcat(x, u)):
-            bends[i] = max(0.0, float(np.max(np.linalg.eigvalsh(-np.asarray(ca.DM(hessian)))))) / 2
-    return bends
 
 
 def worst_of(depth: ca.SX, between: list[ca.SX]) -> ca.SX:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..problem.models import Model
-from .tracking import problem_parts
+from .parts import problem_parts
 
 #: a projection further than this (output units, inf-norm) from y_t means y_t was out of reach
 OUT_OF_REACH = 1e-6

@@ -33,15 +33,8 @@ from ..config.settings import ControllerSettings
 from ..errors import ConfigError
 from ..problem.models import Model, make_model
 from .between import between_samples, worst_of
-from .tracking import (
-    SLACK_REGULARISATION,
-    Buffered,
-    NlpBase,
-    TrackingNlp,
-    check_sizes,
-    depth_function,
-    problem_parts,
-)
+from .parts import check_sizes, depth_function, problem_parts
+from .tracking import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp
 
 #: iteration budget of a cold start (no previous plan), also in core/sample/controller.py
 COLD_START_ITERATIONS = 200

@@ -23,19 +23,21 @@ but a twice-differentiable NLP (measured: far fewer IPOPT iterations near region
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
 from ..config.settings import SOLVERS, ControllerSettings
 from ..errors import ConfigError
-from ..problem.expressions import parse_keep_in
 from ..problem.models import Model, make_model
-from ..problem.regions import SlotLayout
-from .between import between_samples, keep_in_bends, worst_of
+from .between import between_samples, worst_of
 from .buffered import Buffered
-from .worker import ABANDONED, SolveWorker
+from .parts import NlpLayout, check_sizes, depth_function, problem_parts
+from .worker import ABANDONED
+
+if TYPE_CHECKING:
+    from .worker import SolveWorker
 
 #: the share of a sample's time bound (NmpcController.sample_budget) that the search's solver calls may
 #: use: IPOPT's own wall-time limit, and the deadline at which a call in the worker is abandoned; the
@@ -47,151 +49,6 @@ SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})
 #: statuses that mean the iteration or time budget cut the solve
 BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded",
                               ABANDONED})
-
-
-@dataclass
-class NlpLayout:
-    """Index bookkeeping of w and of the parameter vector."""
-
-    n: int
-    m: int
-    p: int
-    horizon: int
-    n_keep_in: int
-    slot_size: int
-    closed_form: bool
-    n_slack: int
-
-    @property
-    def n_w(self) -> int:
-        extra = 0 if self.closed_form else self.n + self.m
-        return self.m * self.horizon + self.n * self.horizon + self.p + extra + self.n_slack
-
-    @property
-    def n_param(self) -> int:
-        return self.n + self.p + 2 + self.n + self.m + self.n_keep_in + self.slot_size
-
-    def split_w(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-        """w -> U [N, m], X [N, n] (x(1..N)), y_a [p], (x_a, u_a) stacked or None."""
-        N, n, m, p = self.horizon, self.n, self.m, self.p
-        w = np.asarray(w, float).ravel()
-        U = w[: m * N].reshape(N, m)
-        X = w[m * N: m * N + n * N].reshape(N, n)
-        y_a = w[m * N + n * N: m * N + n * N + p]
-        start = m * N + n * N + p
-        rest = None if self.closed_form else w[start:start + n + m]
-        return U, X, y_a, rest
-
-    def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: np.ndarray | None,
-               x0: np.ndarray | None = None) -> np.ndarray:
-        """Inverse of split_w (x0 is not a variable here); the slacks are zero (see NlpBase.fill_slacks)."""
-        parts = [np.ravel(U), np.ravel(X), np.ravel(y_a)]
-        if not self.closed_form:
-            parts.append(np.ravel(rest))
-        parts.append(np.zeros(self.n_slack))
-        return np.concatenate(parts)
-
-
-@dataclass
-class ProblemParts:
-    """Symbols and functions shared by every formulation of one settings structure.
-
-    Attributes:
-        par: the parameter vector (see `parameters` for its order), and its pieces x0, y_t,
-            kappa, mu, q, r, keep_active, slot_par.
-        avoidance: (x [n], u [m], elapsed s) -> active * g of every keep-in expression and obstacle
-            slot [n_depth] (> 0 inside a region to avoid), moving obstacles taken `elapsed` s after
-            x(0): stage k at k Ts, and the steady state x_a (= x(N)) at N Ts.
-        chord: (x_a [n], x_b [n], u [m], elapsed_a, elapsed_b) -> c^2 [n_depth] of the chord between two
-            sub-step states per region (ellipses; 0 for the others), core/nlp/between.py.
-        hard_g: Function (x, u) -> hard inequalities g <= 0 [n_hard]; hard_uses_u per row.
-        slot_layout, output_frame_available, closed_form, n_keep_in.
-    """
-
-    par: ca.SX
-    x0: ca.SX
-    y_t: ca.SX
-    kappa: ca.SX
-    mu: ca.SX
-    q: ca.SX
-    r: ca.SX
-    keep_active: ca.SX
-    slot_par: ca.SX
-    avoidance: object
-    chord: object
-    hard_g: ca.Function
-    hard_uses_u: list[bool]
-    n_hard: int
-    n_keep_in: int
-    n_depth: int
-    slot_layout: SlotLayout
-    output_frame_available: bool
-    closed_form: bool
-
-
-def check_sizes(settings: ControllerSettings, model: Model) -> None:
-    """ConfigError when bounds, weights or planes do not fit the model's dimensions."""
-    for name, size in (("state_min", model.n), ("state_max", model.n), ("input_min", model.m),
-                       ("input_max", model.m), ("state_weights", model.n), ("input_weights", model.m)):
-        if len(getattr(settings, name)) != size:
-            raise ConfigError(f"{name} needs {size} values for model {model.name}, got {len(getattr(settings, name))}")
-    if max(settings.plane) >= model.n:
-        raise ConfigError(f"plane {settings.plane} indexes beyond the {model.n} states of {model.name}")
-
-
-def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
-    """Parse the regions and make the parameter symbols of one settings structure."""
-    s, mdl = settings, model
-    n, m, p = mdl.n, mdl.m, mdl.p
-    slots = SlotLayout(s.max_ellipses, s.max_polygons, s.max_polygon_vertices)
-    output_frame_available = p >= 2 and max(s.output_plane) < p
-    # keep-in expressions over the model's names, as one Function g(x, u) -> [n_keep]
-    xs, us = ca.SX.sym("x", n), ca.SX.sym("u", m)
-    symbols = mdl.symbol_table(xs, us)
-    keep_in = [parse_keep_in(text, symbols) for text in s.keep_in]
-    hard = [parse_keep_in(text, symbols) for text in s.constraints]
-    keep_g = ca.Function("keep_in_g", [xs, us], [ca.vertcat(*[k.g for k in keep_in]) if keep_in else ca.SX(0, 1)])
-    hard_g = ca.Function("hard_g", [xs, us], [ca.vertcat(*[k.g for k in hard]) if hard else ca.SX(0, 1)])
-    hard_uses_u = [bool(ca.depends_on(k.g, us)) for k in hard]
-    x0 = ca.SX.sym("x0", n)
-    y_t = ca.SX.sym("y_t", p)
-    kappa = ca.SX.sym("kappa")
-    mu = ca.SX.sym("mu")
-    q = ca.SX.sym("q", n)
-    r = ca.SX.sym("r", m)
-    keep_active = ca.SX.sym("keep_active", len(keep_in))
-    slot_par = ca.SX.sym("slots", slots.size)
-    par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, slot_par)
-
-    def points(x, u):
-        """(state-plane point, output-plane point or None) of x under u."""
-        return x[list(s.plane)], mdl.output(x, u)[list(s.output_plane)] if output_frame_available else None
-
-    def avoidance(x, u, elapsed: float = 0.0):
-        """The region functions g at one point (keep-in expressions, then obstacle slots), with
-        moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts)."""
-        return ca.vertcat(keep_active * (keep_g(x, u) + s.keep_in_margin),
-                          slots.depths(slot_par, *points(x, u), elapsed))
-
-    bends = keep_in_bends([k.g for k in keep_in], xs, us)
-
-    def chord(xa, xb, u, elapsed_a: float, elapsed_b: float):
-        """Per region, c^2 of the chord x_a -> x_b under u (core/nlp/between.py): for an ellipse its squared
-        normalised length, for a keep-in expression `keep_in_bends` |x_b - x_a|^2, 0 for polygons."""
-        d = xb - xa
-        return ca.vertcat(keep_active * bends * ca.dot(d, d),
-                          slots.chords(slot_par, points(xa, u), points(xb, u), elapsed_a, elapsed_b))
-
-    return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, chord, hard_g, hard_uses_u,
-                        len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
-                        output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None)
-
-
-def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
-    """(x [n], u [m], p [n_param], elapsed s) -> region functions g [n_depth] (> 0 inside a region to
-    avoid), moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts; steady state: N Ts)."""
-    xs, us, elapsed = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m), ca.SX.sym("elapsed")
-    return ca.Function("region_depth", [xs, us, parts.par, elapsed], [parts.avoidance(xs, us, elapsed)])
 
 
 class NlpBase:
@@ -246,6 +103,11 @@ class NlpBase:
         """
         if self.worker is not None:
             return self.worker.solve(self, w0, par, lam_x0, lam_g0, cold, self.worker.deadline)
+        return self.solve_here(w0, par, lam_x0, lam_g0, cold)
+
+    def solve_here(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
+        """`solve` in this process, whatever the worker (the worker's child calls this)."""
         call = self._cold_solver_call if cold and self.cold_solver is not None else self._solver_call
         results = call(w0, par, lam_x0, lam_g0)
         return results[0].copy(), results[3].copy(), results[4].copy(), call.stats(), call.seconds

@@ -40,12 +40,22 @@ import time
 import warnings
 import weakref
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .tracking import NlpBase
+
+class Solvable(Protocol):
+    """What the worker needs of an NLP (core/nlp/tracking.py NlpBase): its sizes and a solve in this process."""
+
+    layout: Any
+    lbg: np.ndarray
+
+    @property
+    def parameter_count(self) -> int: ...
+
+    def solve_here(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray,
+                   cold: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]: ...
 
 #: solver status of a call that did not answer by its deadline (the child was killed)
 ABANDONED = "Abandoned_At_Deadline"
@@ -74,7 +84,7 @@ def _die_with_parent() -> None:
 class SolveWorker:
     """One child process serving the solver calls of a fixed list of NLPs."""
 
-    def __init__(self, nlps: Sequence[NlpBase]) -> None:
+    def __init__(self, nlps: Sequence[Solvable]) -> None:
         self._nlps = list(nlps)
         self._index = {id(nlp): i for i, nlp in enumerate(self._nlps)}
         sizes = [(nlp.layout.n_w, nlp.parameter_count, nlp.lbg.size) for nlp in self._nlps]
@@ -128,9 +138,9 @@ class SolveWorker:
             pass
 
     # -- the parent's side -----------------------------------------------------------------
-    def solve(self, nlp: NlpBase, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray,
+    def solve(self, nlp: Solvable, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray,
               cold: bool, deadline: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
-        """NlpBase.solve of `nlp` in the child, answered by `deadline` (time.perf_counter seconds) or
+        """`nlp.solve_here` in the child, answered by `deadline` (time.perf_counter seconds) or
         abandoned: then w, lam_x, lam_g are NaN and the stats say ABANDONED."""
         n_w, n_g = nlp.layout.n_w, nlp.lbg.size
         with self._lock:
@@ -214,8 +224,6 @@ class SolveWorker:
         try:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             _die_with_parent()
-            for nlp in self._nlps:
-                nlp.worker = None  # solve here, not through a worker
             os.set_blocking(request, False)
             while True:
                 message = _next_request(request)
@@ -227,12 +235,12 @@ class SolveWorker:
         finally:
             os._exit(0)
 
-    def _solve_here(self, nlp: NlpBase, cold: bool) -> None:
+    def _solve_here(self, nlp: Solvable, cold: bool) -> None:
         n_w, n_g, n_p = nlp.layout.n_w, nlp.lbg.size, nlp.parameter_count
         inputs = self._inputs
         w0, par = inputs[:n_w], inputs[n_w:n_w + n_p]
         lam_x0, lam_g0 = inputs[n_w + n_p:2 * n_w + n_p], inputs[2 * n_w + n_p:2 * n_w + n_p + n_g]
-        w, lam_x, lam_g, stats, seconds = nlp.solve(w0, par, lam_x0, lam_g0, cold=cold)
+        w, lam_x, lam_g, stats, seconds = nlp.solve_here(w0, par, lam_x0, lam_g0, cold=cold)
         out = self._outputs
         out[:n_w], out[n_w:2 * n_w], out[2 * n_w:2 * n_w + n_g] = w, lam_x, lam_g
         status = str(stats.get("return_status", "unknown")).encode()[:_STATUS_BYTES]

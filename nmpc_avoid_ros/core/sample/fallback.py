@@ -30,8 +30,9 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..errors import InputError
+from ..nlp.parts import problem_parts
 from ..nlp.search import VIOLATION_TOLERANCE
-from ..nlp.tracking import SEARCH_SHARE, NlpBase, problem_parts
+from ..nlp.tracking import SEARCH_SHARE, NlpBase
 from ..problem.models import Model
 from .step_result import validate_vector
 
