@@ -172,14 +172,26 @@ class PlantNode(Node):
             self.publish_state()
 
     def on_timer(self) -> None:
-        if not self.holding and self.period > self.period_done:
-            self.advance(self.period - self.period_done)
-        self.period_started, self.period_done = time.monotonic(), 0.0
+        now = time.monotonic()
+        # a period lasts exactly 1/publish_rate (so a bag replays exactly), unless the timer fired more than half a
+        # period off (a stalled process, then a burst of missed ticks): the plant does not pause, it moved for the
+        # wall time that passed (a 350 ms stall under load had it stand still, then jump, the loop predicting neither)
+        span = self.span(now - self.period_started)
+        if not self.holding and span > self.period_done:
+            self.advance(span - self.period_done)
+        self.period_started, self.period_done = now, 0.0
         self.publish_state()
 
+    def span(self, elapsed: float) -> float:
+        """Simulated seconds of a period whose tick came `elapsed` wall seconds after the last: exactly the period,
+        unless that is more than half a period off (then the wall time)."""
+        return self.period if abs(elapsed - self.period) <= self.period / 2 else elapsed
+
     def advance_to_now(self, u: np.ndarray) -> None:
-        """Integrate the current period up to now (at most its end) under u [m], without noise or a step count."""
-        upto = min(time.monotonic() - self.period_started, self.period)
+        """Integrate the current period up to now (at most its nominal end) under u [m], without noise or a step
+        count."""
+        elapsed = time.monotonic() - self.period_started
+        upto = min(elapsed, self.span(elapsed))
         if upto > self.period_done:
             self.x = self.sim.advance(self.x, u, upto - self.period_done)
             self.period_done = upto
