@@ -4,14 +4,18 @@ process group stopped by PID, and an in-process probe node to publish and listen
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.srv import GetParameters
 from rclpy.node import Node
 
+from nmpc_avoid_ros.ros.parameters import STREAM_QOS
 from nmpc_avoid_ros.tools.processes import NodeProcess, isolated_env  # noqa: F401 - NodeProcess re-exported
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,6 +50,16 @@ class Probe:
     def spin_for(self, seconds: float) -> None:
         self.spin_until(lambda: False, seconds)
 
+    def diagnostics_of(self, hardware_id: str = "/controller") -> list[dict[str, str]]:
+        """The key-value pairs of every /diagnostics status of `hardware_id` from now on, as the probe spins."""
+        heard: list[dict[str, str]] = []
+        self.node.create_subscription(
+            DiagnosticArray, "/diagnostics",
+            lambda m: heard.extend({kv.key: kv.value for kv in s.values} for s in m.status
+                                   if s.hardware_id == hardware_id),
+            STREAM_QOS)
+        return heard
+
     def heard_by(self, node_name: str, timeout: float) -> bool:
         """True once `node_name` answered a get_parameters request from this probe. Matching is
         asymmetric: our reader seeing a node's writer does not mean that writer sees our reader, so a
@@ -65,3 +79,11 @@ class Probe:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def run_send(env: dict[str, str], *args: str, timeout: float = 60.0) -> tuple[subprocess.CompletedProcess, float]:
+    """`python -m nmpc_avoid_ros send ...` in the test's domain: (the finished process, its seconds)."""
+    begin = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "send", *args], env=env, capture_output=True,
+                          text=True, timeout=timeout, start_new_session=True)
+    return proc, time.monotonic() - begin

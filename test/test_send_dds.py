@@ -12,15 +12,12 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
-from rosgraph import ROOT
+from rosgraph import ROOT, run_send
 from std_msgs.msg import Float64MultiArray
 
 from nmpc_avoid_ros.bag.analysis import load_run, run_metrics
@@ -40,14 +37,6 @@ NO_COMPILE = ["-p", "codegen:=false"]
 #: the command is held to 150 ms after the sample's start (nodes/command_timing.py), so it still leaves
 #: at the instant the plan was predicted for
 INTERPRETED_HOLD = ["-p", "command_latency:=0.15"]
-
-
-def run_send(env: dict[str, str], *args: str, timeout: float = 60.0) -> tuple[subprocess.CompletedProcess, float]:
-    """`python -m nmpc_avoid_ros send ...` in the test's domain: (the finished process, its seconds)."""
-    begin = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "send", *args], env=env, capture_output=True,
-                          text=True, timeout=timeout, start_new_session=True)
-    return proc, time.monotonic() - begin
 
 
 def test_send_exits_1_within_its_timeout_when_no_controller_runs(ros_graph, tmp_path) -> None:

@@ -11,16 +11,11 @@ its diagnostics every sample (ERROR: no odometry), which carry `goal_pose_receiv
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
-import time
 
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
-from rosgraph import CONFIG, ROOT
+from rosgraph import CONFIG, ROOT, run_send
 
 from nmpc_avoid_ros.bag.mcap_io import load_bag
-from nmpc_avoid_ros.ros.parameters import STREAM_QOS
 from nmpc_avoid_ros.tools.processes import recorder_counts
 
 pytestmark = pytest.mark.dds
@@ -31,25 +26,13 @@ NO_COMPILE = ["-p", "codegen:=false"]
 REPEATS = 5
 
 
-def run_send(env: dict[str, str], *args: str) -> tuple[subprocess.CompletedProcess, float]:
-    begin = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "send", *args], env=env, capture_output=True,
-                          text=True, timeout=60.0, start_new_session=True)
-    return proc, time.monotonic() - begin
-
-
 def test_send_goal_reaches_the_robot_controller_and_the_recorder_every_time(ros_graph, tmp_path) -> None:
     _, env, start, probe_factory = ros_graph
     bag_path = tmp_path / "goals.mcap"
     recorder = start("recorder", "--ros-args", "-p", f"output:={bag_path}")
     ctrl = start("controller", "--ros-args", "--params-file", str(UNICYCLE), *NO_COMPILE)
     probe = probe_factory()
-    diags: list[dict[str, str]] = []
-    probe.node.create_subscription(
-        DiagnosticArray, "/diagnostics",
-        lambda m: diags.extend({kv.key: kv.value for kv in s.values} for s in m.status
-                               if s.hardware_id == "/controller"),
-        STREAM_QOS)
+    diags = probe.diagnostics_of("/controller")
     counts = recorder_counts(probe.node)
     for name, proc in (("recorder", recorder), ("controller", ctrl)):
         assert probe.heard_by(name, 120.0), proc.output()[-3000:]

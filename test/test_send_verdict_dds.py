@@ -11,24 +11,12 @@ capacity); `--no-check` bypasses send's size check so the controller refuses the
 
 from __future__ import annotations
 
-import subprocess
-import sys
-import time
-
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
-from rosgraph import CONFIG
-
-from nmpc_avoid_ros.ros.parameters import STREAM_QOS
+from rosgraph import CONFIG, run_send
 
 pytestmark = pytest.mark.dds
 
 NO_COMPILE = ["-p", "codegen:=false"]
-
-
-def run_send(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "send", *args], env=env, capture_output=True,
-                          text=True, timeout=60.0, start_new_session=True)
 
 
 def test_send_reports_the_controllers_verdict_and_the_recorder_does_not_warn_about_it(ros_graph, tmp_path) -> None:
@@ -38,12 +26,7 @@ def test_send_reports_the_controllers_verdict_and_the_recorder_does_not_warn_abo
                      "recorder:=debug")
     ctrl = start("controller", "--ros-args", "--params-file", str(CONFIG), *NO_COMPILE, "-p", "max_polygons:=0")
     probe = probe_factory()
-    diags: list[dict[str, str]] = []
-    probe.node.create_subscription(
-        DiagnosticArray, "/diagnostics",
-        lambda m: diags.extend({kv.key: kv.value for kv in s.values} for s in m.status
-                               if s.hardware_id == "/controller"),
-        STREAM_QOS)
+    diags = probe.diagnostics_of("/controller")
     for name, proc in (("recorder", recorder), ("controller", ctrl)):
         assert probe.heard_by(name, 60.0), proc.output()[-3000:]
     assert probe.spin_until(lambda: bool(diags), 10.0), ctrl.output()[-3000:]
@@ -53,30 +36,28 @@ def test_send_reports_the_controllers_verdict_and_the_recorder_does_not_warn_abo
                                                                 "obstacles_verdict": "none"}
 
     # send's own check against the model: nothing published, exit 2, the size named
-    begin = time.monotonic()
-    proc = run_send(env, "target", "5", "0")
+    proc, seconds = run_send(env, "target", "5", "0")
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert "model van_der_pol takes 1 value (p = 1), got 2" in proc.stderr, proc.stderr
-    print(f"\nsend target 5 0: exit 2 after {time.monotonic() - begin:.1f} s")
+    print(f"\nsend target 5 0: exit 2 after {seconds:.1f} s")
 
     # the controller's own refusal of the same, the check bypassed: exit 1 with its reason
-    begin = time.monotonic()
-    proc = run_send(env, "target", "5", "0", "--no-check")
+    proc, seconds = run_send(env, "target", "5", "0", "--no-check")
     assert proc.returncode == 1, (proc.stdout, proc.stderr)
     assert "/controller refused target [5.0, 0.0]: target: expected 1 values, got 2" in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-    print(f"send target 5 0 --no-check: exit 1 after {time.monotonic() - begin:.1f} s: {proc.stderr.strip()}")
+    print(f"send target 5 0 --no-check: exit 1 after {seconds:.1f} s: {proc.stderr.strip()}")
 
-    proc = run_send(env, "target", "5")
+    proc, _ = run_send(env, "target", "5")
     assert proc.returncode == 0, (proc.stdout, proc.stderr)
     assert "acknowledged by /controller" in proc.stdout and "; accepted by /controller" in proc.stdout, proc.stdout
 
     # a refusal send cannot foresee: the controller's store has no polygon slot
-    proc = run_send(env, "obstacle", "box", "--center", "1", "1", "--size", "0.6", "0.4")
+    proc, _ = run_send(env, "obstacle", "box", "--center", "1", "1", "--size", "0.6", "0.4")
     assert proc.returncode == 1, (proc.stdout, proc.stderr)
     assert "/controller refused box (ns 'send', id 1): marker send/1: capacity of 0 polygons" in proc.stderr, \
         proc.stderr
-    proc = run_send(env, "obstacle", "ellipse", "--center", "2", "-0.5", "--axes", "0.4", "0.2")
+    proc, _ = run_send(env, "obstacle", "ellipse", "--center", "2", "-0.5", "--axes", "0.4", "0.2")
     assert proc.returncode == 0 and "; accepted by /controller" in proc.stdout, (proc.stdout, proc.stderr)
 
     assert probe.spin_until(lambda: diags[-1]["obstacles_received"] == "2", 5.0), diags[-1]

@@ -74,9 +74,6 @@ class RecordedRun:
     target_events: list[TargetEvent] = field(default_factory=list)
     #: the controller's interface (array or robot) and where that was read
     interface: Interface = field(default_factory=Interface)
-    #: the states as measured [K, n] where the diagnostics carry `measured_state` (a controller that solves on
-    #: the state predicted to the moment its command acts); None: x is what was measured
-    measured: np.ndarray | None = None
     #: s each sample's command acted after its state (diagnostics `predicted_delay_ms`: a latency-compensated
     #: controller); None: at once (older bags)
     delays: np.ndarray | None = None
@@ -209,8 +206,6 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         log_times_ns=np.array(stamps, dtype=np.int64),
         target_events=events,
         interface=interface,
-        measured=(np.array([_float_list(v["measured_state"]) for _, v in samples])
-                  if all("measured_state" in v for _, v in samples) else None),
         delays=(np.array([float(v["predicted_delay_ms"]) * 1e-3 for _, v in samples])
                 if all("predicted_delay_ms" in v for _, v in samples) else None),
     )

@@ -5,8 +5,8 @@ rate (`state`, or `odom` on the robot interface), and between two samples it may
 controller keeps it in. Here each recorded state is read back (the array's n values; an Odometry's
 x, y and yaw, unwrapped) and placed on the controller's clock:
 
-* anchors: the recorded state each sample solved on (equal to the diagnostic's `state`, or its
-  `measured_state` where the controller predicted x(0) forward; the last such message logged before
+* anchors: the recorded state each sample solved on (equal to the diagnostic's `state`, the measured
+  one also where the controller planned from it predicted forward; the last such message logged before
   that diagnostic);
 * each recorded state's time is its anchor's controller time plus the log time elapsed since the
   anchor (moving regions are evaluated there); the command in force is the anchor sample's, or a
@@ -100,7 +100,7 @@ def _anchors(stamps: np.ndarray, states: np.ndarray, run: RecordedRun) -> list[t
         index.setdefault(x.tobytes(), []).append(j)
     out: list[tuple[int, int]] = []
     logged = run.log_times_ns if run.log_times_ns is not None else np.full(len(run.x), np.iinfo(np.int64).max)
-    for k, x in enumerate(np.asarray(run.x if run.measured is None else run.measured, float)):
+    for k, x in enumerate(np.asarray(run.x, float)):
         hits = index.get(x.tobytes(), [])
         first = bisect.bisect_left(hits, out[-1][1] if out else 0)  # indices and stamps both ascend
         if first == len(hits):
