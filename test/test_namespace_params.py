@@ -11,6 +11,7 @@ service, every parameter the file sets: the values the node really has.
 from __future__ import annotations
 
 import math
+import time
 
 import pytest
 import yaml
@@ -45,14 +46,23 @@ def test_the_offline_reader_merges_a_nodes_sections_in_file_order(tmp_path):
     assert params.section("robot1/controller") == {"mu": 4.0}  # a namespaced key stays namespaced
 
 
+#: s to wait for a get_parameters answer before the request is sent again
+REQUEST_RETRY = 5.0
+
+
 def node_parameters(probe, node: str, names: list[str], timeout: float = 30.0) -> dict:
-    """{name: value} of `node` (fully qualified) through its get_parameters service."""
+    """{name: value} of `node` (fully qualified) through its get_parameters service. The request is sent again
+    every REQUEST_RETRY s: the service answers only once it has discovered the client's response reader, and
+    a reply sent before that is lost (a fresh clone's make test lost one: no answer in 60 s)."""
     client = probe.node.create_client(GetParameters, f"{node}/get_parameters")
     try:
         assert client.wait_for_service(timeout_sec=timeout), f"no {node}/get_parameters"
-        future = client.call_async(GetParameters.Request(names=names))
-        assert probe.spin_until(future.done, timeout), f"{node} did not answer"
-        return {n: parameter_value_to_python(v) for n, v in zip(names, future.result().values)}
+        end = time.monotonic() + timeout
+        while True:
+            future = client.call_async(GetParameters.Request(names=names))
+            if probe.spin_until(future.done, min(REQUEST_RETRY, max(end - time.monotonic(), 0.0))):
+                return {n: parameter_value_to_python(v) for n, v in zip(names, future.result().values)}
+            assert time.monotonic() < end, f"{node} did not answer"
     finally:
         probe.node.destroy_client(client)
 
