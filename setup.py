@@ -13,7 +13,9 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*", "bench"]),
-    package_data={f"{PACKAGE}.bag": ["report.js"]},  # the HTML report's script (bag/report_page.py)
+    # the HTML report's script and the uPlot it inlines (bag/report_page.py)
+    package_data={f"{PACKAGE}.bag": ["report.js", "vendor/uPlot.iife.min.js", "vendor/uPlot.min.css",
+                                     "vendor/uPlot.LICENSE"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -298,12 +299,50 @@ def chromium() -> str:
     pytest.skip("no chromium on this machine: `apt-get install chromium` to run the HTML report's browser test")
 
 
-def red_pixels(png: bytes) -> np.ndarray:
-    """Mask of the prediction's red (#d62728) in a screenshot."""
+def rgb_of(png: bytes) -> np.ndarray:
+    """A screenshot as [rows, columns, 3] ints 0..255."""
     from matplotlib.image import imread
 
-    rgb = (imread(io.BytesIO(png))[:, :, :3] * 255).astype(int)
+    return (imread(io.BytesIO(png))[:, :, :3] * 255).astype(int)
+
+
+def red_pixels(png: bytes) -> np.ndarray:
+    """Mask of the prediction's red (#d62728) in a screenshot."""
+    rgb = rgb_of(png)
     return (np.abs(rgb[:, :, 0] - 214) < 30) & (rgb[:, :, 1] < 80) & (rgb[:, :, 2] < 80)
+
+
+def keep_in_pixels(png: bytes) -> np.ndarray:
+    """Mask of the keep-in grid's pink (rgba(244,182,182,0.8) over white) in a screenshot."""
+    rgb = rgb_of(png)
+    return (np.abs(rgb[:, :, 0] - 245) < 8) & (np.abs(rgb[:, :, 1] - 197) < 12) & (np.abs(rgb[:, :, 2] - 197) < 12)
+
+
+def cursor_column(png: bytes) -> float:
+    """The median column of the reddish pixels: the sample's cursor line on a chart without red series
+    (anti-aliased, so not always the exact #d62728)."""
+    rgb = rgb_of(png)
+    columns = np.nonzero((rgb[:, :, 0] > 150) & (rgb[:, :, 0] - rgb[:, :, 1] > 60))[1]
+    assert len(columns) > 20, "no cursor line drawn"
+    return float(np.median(columns))
+
+
+def test_the_report_page_inlines_the_pinned_vendored_uplot_and_setup_ships_it(tmp_path):
+    from nmpc_avoid_ros.bag import report_page
+
+    vendor = Path(report_page.__file__).parent / "vendor"
+    script = (vendor / "uPlot.iife.min.js").read_text()
+    # the first line names the version: a replaced file without a new pin fails here
+    assert script.splitlines()[0] == f"/*! https://github.com/leeoniya/uPlot (v{report_page.UPLOT_VERSION}) */"
+    assert "</script" not in script.lower() and "</style" not in (vendor / "uPlot.min.css").read_text().lower()
+    assert "MIT License" in (vendor / "uPlot.LICENSE").read_text()
+    text = report_page.write_report(tmp_path / "r.html", []).read_text()
+    assert script in text and (vendor / "uPlot.min.css").read_text() in text and report_page.SCRIPT in text
+    # the library before the glue that calls it
+    assert text.index(script) < text.index(report_page.SCRIPT)
+    setup_py = (Path(report_page.__file__).parents[2] / "setup.py").read_text()
+    for f in sorted(vendor.iterdir()):  # every vendored file is package data (an installed report needs them)
+        assert f'"vendor/{f.name}"' in setup_py, f.name
 
 
 @pytest.mark.slow
@@ -311,29 +350,51 @@ def red_pixels(png: bytes) -> np.ndarray:
 def test_html_report_of_the_demo_bags_is_self_contained_renders_and_scrubs_in_headless_chromium(demo_out, tmp_path):
     from playwright.sync_api import sync_playwright
 
+    from nmpc_avoid_ros.bag.report_page import UPLOT_SCRIPT, UPLOT_STYLE
+
     page_file = tmp_path / "report.html"
     res = cli("analyze", str(demo_out / "with_avoidance.mcap"), str(demo_out / "without_avoidance.mcap"),
               "--out", str(tmp_path / "o"), "--html", str(page_file))
     assert res.returncode == 0, res.stderr
     text = page_file.read_text()
     assert page_file.stat().st_size < 5e6
-    assert "<script src" not in text and "<link" not in text and "http://" not in text and "https://" not in text
+    assert UPLOT_SCRIPT in text and UPLOT_STYLE in text
+    # outside the library as published (whose banner names its home page) nothing points off the file
+    ours = text.replace(UPLOT_SCRIPT, "").replace(UPLOT_STYLE, "")
+    assert "<script src" not in ours and "<link" not in ours and "http://" not in ours and "https://" not in ours
     executable = chromium()
     offline = load_run(demo_out / "with_avoidance.mcap")
+    charts = 1 + 2 + 1 + 3  # the plane; x1, x2 and u over t; solve times, cost terms, certificate over k
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=executable, args=["--no-sandbox"])
         try:
             page = browser.new_page(viewport={"width": 1400, "height": 1000})
             errors: list[str] = []
+            off_file: list[str] = []
             page.on("pageerror", lambda e: errors.append(str(e)))
-            page.route("**/*", lambda route: route.abort() if not route.request.url.startswith("file:")
-                       else route.continue_())  # offline: any network request would fail the page
+
+            def route(r):  # offline: any network request fails, and the test with it
+                if r.request.url.startswith("file:"):
+                    return r.continue_()
+                off_file.append(r.request.url)
+                return r.abort()
+
+            page.route("**/*", route)
             page.goto(page_file.as_uri())
             page.wait_for_function("window.reportReady === true", timeout=15000)
+            # uPlot drew them: one root per chart, each with its canvas at its size
+            sizes = page.evaluate("[...document.querySelectorAll('#grid .uplot')].map(r => [r.parentElement.id, "
+                                  "r.querySelector('canvas').width, r.querySelector('canvas').height])")
+            assert [s[0] for s in sizes] == ["plane"] + ["series"] * 3 + ["solve", "costs", "certificate"]
+            assert all(w >= 600 and h >= 100 for _, w, h in sizes), sizes
+            assert page.locator("#plane .u-legend .u-series").count() == 2 + 4  # both runs; plan, state, x_a, target
             plane = page.locator("#plane")
             first = plane.screenshot()
             assert red_pixels(first).sum() > 100  # the plan of sample 0 is drawn
+            # the keep-in grid (drawn in uPlot's hook) covers the corners of the plane, where |x1 x2| > 2
+            assert keep_in_pixels(first).sum() > 20000
             assert page.evaluate("window.report.k") == 0
+            solve_first = cursor_column(page.locator("#solve").screenshot())
             page.focus("#scrub")
             for _ in range(12):
                 page.keyboard.press("ArrowRight")
@@ -344,9 +405,17 @@ def test_html_report_of_the_demo_bags_is_self_contained_renders_and_scrubs_in_he
             assert len(drawn["prediction"]) == 6
             later = plane.screenshot()
             assert red_pixels(later).sum() > 100 and (red_pixels(later) != red_pixels(first)).sum() > 100
+            assert page.locator("#plane .u-title").inner_text() == "plane portrait at sample 12"
+            # the cursor on the solve times moved 12 of the 50 samples right (the plot is about 580 px wide)
+            assert cursor_column(page.locator("#solve").screenshot()) - solve_first == pytest.approx(
+                12 / 50 * 580, rel=0.15)
+            page.mouse.move(300, 300)  # uPlot's own hover cursor over the plane
             page.select_option("#run", "1")  # the other bag
-            assert page.evaluate("window.report.run") == 1
-            assert errors == []
+            assert page.evaluate("window.report.run") == 1 and page.evaluate("window.report.k") == 12
+            # the charts were made anew for it, not added beside the old ones
+            assert page.locator("#grid .uplot").count() == charts
+            assert red_pixels(plane.screenshot()).sum() > 100
+            assert errors == [] and off_file == []
         finally:
             browser.close()
 
