@@ -16,16 +16,27 @@ plant stands for a differential-drive base: it publishes nav_msgs/Odometry on `o
 `odom_frame`, twist in `base_frame`, stamped with the node clock or, in lockstep, the simulated
 time) and takes geometry_msgs/TwistStamped (or Twist, `cmd_vel_stamped: false`) on `cmd_vel`.
 
+Views (docs/usage.md, "RViz and Foxglove"): a planar model (the unicycle; the mobile robot's
+`double_integrator_2d`, which heads where it moves) also has its pose on `odom` on the array interface
+and, where tf2_msgs is importable (a ROS installation: it is not among the PyPI wheels), the transform
+`odom_frame` -> `base_frame` on `/tf` with each state, and on the array interface `view_frames` (the
+controller's drawing frames `state` and `output`) as `odom_frame` itself on `/tf_static`. Without
+tf2_msgs the node says once that it publishes no transform: the views place the robot from the odometry.
+
 A plain node, not a lifecycle one: it stands for hardware, which a real robot's driver runs and
 this package does not manage.
 """
 
 from __future__ import annotations
 
+import importlib
+import math
 import time
+from collections.abc import Sequence
 
 import numpy as np
-from geometry_msgs.msg import Twist, TwistStamped
+from builtin_interfaces.msg import Time as TimeMsg
+from geometry_msgs.msg import TransformStamped, Twist, TwistStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
@@ -38,11 +49,16 @@ from ..core.errors import ConfigError, InputError
 from ..core.loop.closed_loop import ContinuousPlant, DiscretePlant
 from ..core.problem.models import MODELS, make_model
 from ..ros.conversions import array_to_vector, vector_to_array
-from ..ros.parameters import LATEST_QOS, STREAM_QOS, ParamSpec, declare, finite_vector
-from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command
+from ..ros.parameters import LATCHED_QOS, LATEST_QOS, STREAM_QOS, ParamSpec, declare, finite_vector
+from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command, yaw_quaternion
 from .runner import run_node
 
 INTEGRATIONS = ("continuous", "euler", "rk4")
+#: planar models by their state names -> where the heading comes from: a state (the unicycle's theta) or the
+#: direction of motion (the mobile robot's double integrator, which has no heading of its own)
+PLANAR_HEADINGS = {("x", "y", "theta"): "state", ("px", "py", "vx", "vy"): "motion"}
+#: m/s below which a model heading where it moves keeps its last heading (at rest the direction is noise)
+STILL_SPEED = 1e-3
 
 PLANT_SPECS = [
     ParamSpec("model", "van_der_pol", "model to simulate", ParameterType.PARAMETER_STRING, read_only=True,
@@ -72,11 +88,36 @@ PLANT_SPECS = [
               choices=INTERFACES),
     ParamSpec("cmd_vel_stamped", True, "robot interface: cmd_vel is TwistStamped (else Twist)",
               ParameterType.PARAMETER_BOOL, read_only=True),
-    ParamSpec("odom_frame", "odom", "robot interface: header.frame_id of the odometry",
+    ParamSpec("odom_frame", "odom", "planar models: header.frame_id of the odometry, parent frame of the /tf "
+              "transform", ParameterType.PARAMETER_STRING, read_only=True),
+    ParamSpec("base_frame", "base_link", "planar models: child_frame_id of the odometry and of the /tf transform",
               ParameterType.PARAMETER_STRING, read_only=True),
-    ParamSpec("base_frame", "base_link", "robot interface: child_frame_id of the odometry",
-              ParameterType.PARAMETER_STRING, read_only=True),
+    ParamSpec("publish_tf", True, "planar models: publish odom_frame -> base_frame on /tf with each state (needs "
+              "tf2_msgs, i.e. a ROS installation; without it the node says so once)",
+              ParameterType.PARAMETER_BOOL, read_only=True),
+    ParamSpec("view_frames", ["state", "output"], "array interface, planar model, publish_tf: frames published on "
+              "/tf_static as odom_frame itself: the controller draws its plan in `state` and the regions in "
+              "`output`, which are the odometry frame when its plane and output_plane pick the position (the "
+              "mobile robot configs); [''] for none", ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
 ]
+
+
+def tf_message_type() -> type | None:
+    """tf2_msgs/TFMessage, or None where tf2_msgs is not importable: the PyPI wheels do not carry it, a ROS
+    installation does. Looked up by name when a node starts: the node runs without it."""
+    try:
+        return importlib.import_module("tf2_msgs.msg").TFMessage
+    except ImportError:
+        return None
+
+
+def transform_stamped(parent: str, child: str, pose: Sequence[float], stamp: TimeMsg) -> TransformStamped:
+    """The transform parent -> child of a planar pose (x, y, yaw), in the plane z = 0."""
+    msg = TransformStamped(child_frame_id=child)
+    msg.header.stamp, msg.header.frame_id = stamp, parent
+    msg.transform.translation.x, msg.transform.translation.y = float(pose[0]), float(pose[1])
+    msg.transform.rotation = yaw_quaternion(float(pose[2]))
+    return msg
 
 
 class PlantNode(Node):
@@ -109,15 +150,22 @@ class PlantNode(Node):
         self.rejected = 0
 
         self.robot = values["interface"] == "robot"
+        self.odom_frame, self.base_frame = values["odom_frame"], values["base_frame"]
+        self.heading = PLANAR_HEADINGS.get(self.model.state_names)
+        self.yaw = 0.0  # the heading of a model heading where it moves: kept while it stands still
+        self.pub_odom = self.pub_tf = None
         if self.robot:
             check_robot_model(self.model)
-            self.odom_frame, self.base_frame = values["odom_frame"], values["base_frame"]
-            self.pub_state = self.create_publisher(Odometry, "odom", STREAM_QOS)
+            self.pub_state = self.pub_odom = self.create_publisher(Odometry, "odom", STREAM_QOS)
             twist_type = TwistStamped if values["cmd_vel_stamped"] else Twist
             self.create_subscription(twist_type, "cmd_vel", self.on_command, LATEST_QOS)
         else:
             self.pub_state = self.create_publisher(Float64MultiArray, "state", STREAM_QOS)
             self.create_subscription(Float64MultiArray, "command", self.on_command, LATEST_QOS)
+            if self.heading is not None:  # the pose of a planar robot, for the views (the controller reads `state`)
+                self.pub_odom = self.create_publisher(Odometry, "odom", STREAM_QOS)
+        if self.heading is not None and values["publish_tf"]:
+            self.create_tf_publishers([] if self.robot else [f for f in values["view_frames"] or [] if f])
         if self.lockstep:
             self.pub_clock = self.create_publisher(Clock, "/clock", STREAM_QOS)
             # publish x0 once the controller's subscription is matched (then exactly once per command)
@@ -132,12 +180,47 @@ class PlantNode(Node):
             f"plant ready: model={self.model.name} x0={self.x.tolist()} integration={integration} mode={mode}"
         )
 
+    def create_tf_publishers(self, view_frames: list[str]) -> None:
+        """/tf for odom -> base with each state; /tf_static for `view_frames` as odom itself (once, latched)."""
+        self.tf_message = tf_message_type()
+        if self.tf_message is None:
+            self.get_logger().info(f"tf2_msgs is not importable (no ROS installation): no {self.odom_frame} -> "
+                                   f"{self.base_frame} on /tf; views place the robot from the odometry on odom")
+            return
+        self.pub_tf = self.create_publisher(self.tf_message, "/tf", STREAM_QOS)
+        if view_frames:
+            self.pub_tf_static = self.create_publisher(self.tf_message, "/tf_static", LATCHED_QOS)
+            self.pub_tf_static.publish(self.tf_message(transforms=[
+                transform_stamped(self.odom_frame, frame, (0.0, 0.0, 0.0), self.stamp()) for frame in view_frames]))
+
+    def stamp(self) -> TimeMsg:
+        """Now: the simulated time in lockstep, else the node clock."""
+        return Time(nanoseconds=self.sim_time_ns).to_msg() if self.lockstep else self.get_clock().now().to_msg()
+
+    def pose_and_velocity(self) -> tuple[list[float], list[float]]:
+        """A planar model's pose [x, y, yaw] and velocity [v, omega] in its base frame (the unicycle's: the
+        command in force; a model heading where it moves: its speed and the turn rate of its velocity)."""
+        if self.heading == "state":
+            return [self.x[0], self.x[1], self.x[2]], [self.u[0], self.u[1]]
+        vx, vy = float(self.x[2]), float(self.x[3])
+        speed, omega = math.hypot(vx, vy), 0.0
+        if speed > STILL_SPEED:
+            self.yaw = math.atan2(vy, vx)
+            ax, ay = np.asarray(self.model.dynamics(self.x, self.u), float).ravel()[2:4]
+            omega = (vx * ay - vy * ax) / speed**2
+        return [self.x[0], self.x[1], self.yaw], [speed, omega]
+
     def publish_state(self) -> None:
         if not self.robot:
             self.pub_state.publish(vector_to_array(self.x))
+        if self.pub_odom is None:
             return
-        stamp = Time(nanoseconds=self.sim_time_ns).to_msg() if self.lockstep else self.get_clock().now().to_msg()
-        self.pub_state.publish(state_to_odometry(self.x, self.u, stamp, self.odom_frame, self.base_frame))
+        stamp = self.stamp()
+        pose, velocity = self.pose_and_velocity()
+        self.pub_odom.publish(state_to_odometry(pose, velocity, stamp, self.odom_frame, self.base_frame))
+        if self.pub_tf is not None:
+            self.pub_tf.publish(self.tf_message(transforms=[
+                transform_stamped(self.odom_frame, self.base_frame, pose, stamp)]))
 
     def publish_initial_when_heard(self) -> None:
         if self.pub_state.get_subscription_count() >= self.wait_for_subscribers:
