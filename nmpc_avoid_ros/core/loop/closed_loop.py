@@ -223,6 +223,9 @@ class ClosedLoop:
         if self.on_step:
             self.on_step(k, outcome)
         x = self.plant.advance(self.x, outcome.u, self.sample_time)
+        prepare = getattr(self.stepper, "prepare", None)  # the next sample solved ahead (feedback setting)
+        if prepare is not None:
+            prepare()
         self._xs.append(x)
         self._us.append(np.asarray(outcome.u, float))
         self._targets.append(y_t)

@@ -109,7 +109,7 @@ class Tried:
 
 
 #: phases of a sample (SearchReport.phase)
-PHASES = ("warm", "cold", "continue", "escape", "passage_try", "passage", "passage_ended", "no_solve")
+PHASES = ("warm", "cold", "continue", "escape", "passage_try", "passage", "passage_ended", "no_solve", "feedback")
 
 
 @dataclass
@@ -119,7 +119,8 @@ class SearchReport:
     phase: the sample's last phase (PHASES): 'warm' (the shifted plan), 'cold' (no plan: the cold-start
         starts), 'continue' (a budget-cut iterate continued), 'escape' (local-minimum escape guesses),
         'passage_try' (the passage NLP's guesses), 'passage' (a sample in the passage mode),
-        'passage_ended' (the sample that handed back to the regular horizon), 'no_solve'.
+        'passage_ended' (the sample that handed back to the regular horizon), 'no_solve', 'feedback' (the
+        plan prepared for the sample answered, no solver call: core/sample/feedback.py).
     kept: the label of the plan applied ('' when none was usable).
     entered_passage: this sample's plan entered the passage mode.
     more_next_sample: guesses left for the next sample (escape_guesses_per_sample).
@@ -144,7 +145,7 @@ class SearchReport:
 
     def render(self) -> str:
         """One line for people (diagnostics `escape`, logs): the phase and kept plan, then each start."""
-        if self.phase in ("warm", "continue") and len(self.tried) <= 1:
+        if self.phase in ("warm", "continue", "feedback") and len(self.tried) <= 1:
             return ""
         if self.phase in ("passage", "passage_ended") and len(self.tried) <= 1:
             return self.phase.replace("_", " ")

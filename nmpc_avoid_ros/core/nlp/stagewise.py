@@ -195,6 +195,7 @@ class StagewiseNlp(NlpBase):
                   "nu": [int(stage_start[k + 1] - stage_start[k] - n - p) for k in range(N)] + [0],
                   "ng": [int(g_start[k + 1] - g_start[k]) - (n + p if k < N else 0) for k in range(N + 1)]}
         problem = {"x": w, "p": par, "f": cost, "g": g}
+        self.problem = problem
         self.solver, self.solver_info = self._make_solver(problem, s, stages)
         if s.solver.startswith("sqp") and s.max_iterations < COLD_START_ITERATIONS:
             # a real-time budget is too small for a cold start: the same solver (and compiled

@@ -43,6 +43,11 @@ class LatencyPrediction:
             return 0.0
         return min(latency + input_delay, self.max_delay)
 
+    def shift(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        """The state [n] dt s after x [n] under u [m] held, backwards for dt < 0 (the model is smooth: a state a
+        few milliseconds earlier on the same arc, e.g. a prepared sample expecting a shorter delay)."""
+        return np.asarray(self._flow(x, u, dt), float).ravel() if dt != 0.0 else np.array(x, float)
+
     def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """The state [n] dt s after x [n] under the input u [m] held (x itself for dt <= 0)."""
         if dt <= 0.0:

@@ -9,7 +9,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..nlp.search import Candidate
+from .feedback import Prepared
 from .mismatch import MismatchMargin
+from .status import FeedbackOutcome
 from .step_result import Plan
 
 
@@ -32,6 +34,9 @@ class SampleMemory:
     mismatch: the one-step prediction errors measured and the margin they add (core/sample/mismatch.py).
     command: the last command answered [m] (a step's or `coast`'s u), in force while the next state ages
         (core/sample/latency.py); None before the first.
+    last: the last step's sample (what `prepare` predicts the next one from); None before the first.
+    prepared: the plan solved ahead for the next sample and its feedback law (core/sample/feedback.py);
+        the plan is also `plan`, with age -1 (it is for the sample to come).
     """
 
     plan: Plan | None = None
@@ -45,6 +50,8 @@ class SampleMemory:
     passage_next: int = 0
     mismatch: MismatchMargin = field(default_factory=MismatchMargin)
     command: np.ndarray | None = None
+    last: Sample | None = None
+    prepared: Prepared | None = None
 
 
 @dataclass
@@ -53,7 +60,11 @@ class Sample:
     ahead under `command` [m], core/sample/latency.py), tracked target y_t [p] (projected), parameters,
     the time of x (s, the regions' clock), the deadline of the search's solver calls and the end of the
     sample's budget (time.perf_counter s: the fallback's recovery solve ends by it), whether x is in the
-    solve domain; then what the search adds: its solver seconds and the regular candidate."""
+    solve domain; then what the search adds: its solver seconds and the regular candidate. begin: when the
+    sample began (time.perf_counter s); feedback: what became of a prepared plan (None: there was none);
+    measured_at: the measurement's time (s, or None); settled: its mismatch bookkeeping is done (a sample
+    answered by its prepared plan does it after its command, `NmpcController._settle`), sent_at: when its
+    command left (s, `command_sent`)."""
 
     x: np.ndarray
     y_t: np.ndarray
@@ -67,6 +78,11 @@ class Sample:
     measured: np.ndarray | None = None
     delay: float = 0.0
     command: np.ndarray | None = None
+    begin: float = 0.0
+    feedback: FeedbackOutcome | None = None
+    measured_at: float | None = None
+    settled: bool = True
+    sent_at: float | None = None
 
     def time_left(self) -> float:
         return self.deadline - clock.perf_counter()

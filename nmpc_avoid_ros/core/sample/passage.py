@@ -118,13 +118,14 @@ class Passage:
 
     def hand_back(self, plan: Plan, short: NlpBase) -> Plan:
         """The regular NLP's plan made of the long plan's first N stages (as of the last sample, like any
-        kept plan; x(N) = x_a), with zero multipliers: the mode ends with it."""
-        N, a = short.layout.horizon, plan.age
+        kept plan; x(N) = x_a), with zero multipliers: the mode ends with it. A prepared plan (age -1, for
+        this sample: core/sample/feedback.py) stays one."""
+        N, a = short.layout.horizon, max(plan.age, 0)
         inputs, states = _padded(plan.inputs, plan.u_a, N), _padded(plan.states, plan.x_a, N)
         states = states[a:a + N + 1].copy()
         states[-1] = plan.x_a
         return Plan(inputs[a:a + N].copy(), states, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
-                    np.zeros(short.layout.n_w), np.zeros(short.lbg.size), 0, plan.costs)
+                    np.zeros(short.layout.n_w), np.zeros(short.lbg.size), min(plan.age, 0), plan.costs)
 
 
 def _padded(rows: np.ndarray, last: np.ndarray, count: int) -> np.ndarray:

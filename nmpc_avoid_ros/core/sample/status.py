@@ -41,3 +41,19 @@ class StepStatus(StrEnum):
     def is_usable(self) -> bool:
         """The sample applied a solve (converged, or a feasible budget-cut iterate)."""
         return not self.is_fallback
+
+
+class FeedbackOutcome(StrEnum):
+    """What became of a prepared plan at the sample it was prepared for (StepResult.feedback)."""
+
+    #: the prepared plan, moved to the state that arrived, gave the command
+    ANSWERED = "answered"
+    #: the preparation's plan has no law (not converged, not clear, or its KKT system is degenerate)
+    NO_LAW = "no_law"
+    #: the target, a weight, the region set or a margin changed since the preparation
+    INPUTS_CHANGED = "inputs_changed"
+    #: an active constraint would leave its active set for this state: a new active set, searched
+    ACTIVE_SET_CHANGED = "active_set_changed"
+    #: the moved plan violates a constraint beyond feasibility_tolerance, or a slack beyond
+    #: VIOLATION_TOLERANCE (the state is too far from the predicted one for the first-order law)
+    INFEASIBLE = "infeasible"

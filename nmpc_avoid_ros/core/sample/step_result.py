@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..nlp.search import SearchReport
-from .status import StepStatus
+from .status import FeedbackOutcome, StepStatus
 
 
 @dataclass
@@ -48,6 +48,10 @@ class StepResult:
             margins), but one keeps clear of the regions themselves: not a region_unavoidable.
         delay: s the measured state was predicted over (core/sample/latency.py); measured_state: that
             state [n] (states[0] is the predicted one); None where no sample was solved (`coast`).
+        feedback: what became of the plan prepared for this sample (core/sample/feedback.py); None: none was.
+        feedback_time: s from the sample's start to its command when the prepared plan answered (0 otherwise);
+        preparation_time: s the preparation of this sample took between the samples (solver calls and the law);
+            solve_time counts both, with the solver time of a search the sample ran itself.
     """
 
     u: np.ndarray
@@ -74,6 +78,9 @@ class StepResult:
     fallback_predicted: dict[str, float] = field(default_factory=dict)
     delay: float = 0.0
     measured_state: np.ndarray | None = None
+    feedback: FeedbackOutcome | None = None
+    feedback_time: float = 0.0
+    preparation_time: float = 0.0
 
     @property
     def escape(self) -> str:

@@ -1,0 +1,173 @@
+"""The feedback law of a prepared solution: how its plan moves with the state it starts from.
+
+Why: a converged solve takes FATROP 0.5-20 ms on the live configs; acados' real-time iteration answers
+the same problem in tens of microseconds because, between samples, it prepares the problem for the
+state it expects and, when the state arrives, only corrects for the difference. Here the preparation
+solves the NLP to convergence for the predicted state x̄ (core/sample/feedback.py) and this module turns
+that solution into a law for any nearby state x: the tangential predictor of parametric NLP
+sensitivity (Fiacco 1976; the advanced-step NMPC of Zavala & Biegler 2009):
+
+    [H   A_a'] [dw]     [H_p  ]
+    [A_a  0  ] [dl] = - [A_a,p] dp,     dp = p(x) - p(x̄)
+
+with H the Hessian of the Lagrangian f + lam_g' g, A_a the Jacobian of the active constraints and
+bounds (equalities, inequalities at a bound) and dp the change of the parameters the law follows (the
+initial state x(0) and the obstacle slots, which move with time). The active set is read from the
+solution itself (a row within `ACTIVE_TOLERANCE` of a bound), so a plan solved on another NLP of the
+same problem (an ellipse tier, the reference) gets a law too; the multipliers are the least-squares
+ones of the stationarity condition on that set, and dependent rows (a slack bounded by nine copies of
+the same row of an empty slot) are dropped by a pivoted QR.
+
+The law answers only where it is right: the active constraints keep the sign of their multipliers
+(else the active set changes: a QP, not this), and the corrected plan w + dw is feasible to the
+search's `feasibility_tolerance` and clear of the regions, both checked on the nonlinear problem at
+the new parameters. Elsewhere it answers None and the sample searches as before.
+"""
+
+from __future__ import annotations
+
+import time as clock
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+#: a constraint row or bound this close to its bound (scaled by 1 + |bound|) counts as active
+ACTIVE_TOLERANCE = 1e-6
+#: rows whose pivot in the QR of the active Jacobian is below this share of the largest are dependent
+DEPENDENT_ROW = 1e-9
+#: the stationarity residual |grad f + A_a' lam| allowed, relative to 1 + |grad f|: above it the
+#: active set read from the solution is not the solution's (e.g. a solve stopped short), no law
+STATIONARITY_TOLERANCE = 1e-3
+#: primal regularisation of the KKT matrix (a flat direction such as an unused slack's)
+REGULARISATION = 1e-10
+#: an active multiplier may cross zero by this much (relative to 1 + its size) before the law refuses
+MULTIPLIER_TOLERANCE = 1e-6
+
+
+class KktSensitivity:
+    """The derivatives of one NLP's KKT conditions (CasADi Functions built once, in the constructor).
+
+    `columns` are the parameters the law follows (indices into the NLP's parameter vector).
+    """
+
+    def __init__(self, problem: dict, columns: np.ndarray) -> None:
+        w, p, f, g = problem["x"], problem["p"], problem["f"], problem["g"]
+        self.columns = np.asarray(columns, dtype=int)
+        lam = ca.SX.sym("lam_g", g.numel())
+        lagrangian = f + ca.dot(lam, g)
+        grad = ca.gradient(lagrangian, w)
+        picked = self.columns.tolist()
+        self._first = ca.Function("kkt_first", [w, p], [ca.gradient(f, w), g, ca.jacobian(g, w),
+                                                        ca.jacobian(g, p)[:, picked]])
+        self._second = ca.Function("kkt_second", [w, p, lam], [ca.hessian(lagrangian, w)[0],
+                                                               ca.jacobian(grad, p)[:, picked]])
+
+    def law(self, w: np.ndarray, par: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+            u0_index: np.ndarray) -> FeedbackLaw | str:
+        """The law at the solution w [n_w] of the NLP at parameters par, or why there is none (text for
+        people: the active set read from w does not satisfy the KKT conditions, or the KKT matrix is singular).
+
+        bounds: (lbx, ubx, lbg, ubg) of the NLP; u0_index [m]: where u(0) sits in w.
+        """
+        begin = clock.perf_counter()
+        lbx, ubx, lbg, ubg = bounds
+        grad_f, g, A, A_p = self._first(w, par)
+        grad_f, g = np.asarray(grad_f).ravel(), np.asarray(g).ravel()
+        A, A_p = sp.csr_matrix(A.sparse()), np.asarray(A_p)
+        rows, lower_rows = _active(g, lbg, ubg)
+        bound, lower_bound = _active(w, lbx, ubx)
+        n_w = w.size
+        jacobian = sp.vstack([A[rows], sp.eye(n_w, format="csr")[bound]]).toarray()
+        # dependent rows: keep the ones a pivoted QR of the transposed Jacobian ranks first
+        if jacobian.shape[0]:
+            _, r, pivot = sla.qr(jacobian.T, mode="economic", pivoting=True)
+            diag = np.abs(np.diag(r))
+            keep = np.sort(pivot[:int(np.sum(diag > DEPENDENT_ROW * max(diag[0], 1.0)))])
+        else:
+            keep = np.zeros(0, int)
+        jacobian = jacobian[keep]
+        lam, *_ = np.linalg.lstsq(jacobian.T, -grad_f, rcond=None)
+        residual = np.linalg.norm(grad_f + jacobian.T @ lam)
+        if residual > STATIONARITY_TOLERANCE * (1.0 + np.linalg.norm(grad_f)):
+            return f"the active set read from the plan leaves a stationarity residual of {residual:.2g}"
+        n_rows = rows.size
+        kept_rows = keep[keep < n_rows]
+        lam_g = np.zeros(g.size)
+        lam_g[rows[kept_rows]] = lam[:kept_rows.size]
+        H, H_p = self._second(w, par, lam_g)
+        H, H_p = sp.csc_matrix(H.sparse()), np.asarray(H_p)
+        k = jacobian.shape[0]
+        kkt = sp.bmat([[H + REGULARISATION * sp.eye(n_w), sp.csc_matrix(jacobian.T)],
+                       [sp.csc_matrix(jacobian), -REGULARISATION * sp.eye(k)]], format="csc")
+        # the parameters' part of the active rows: constraint rows from A_p, bounds do not depend on p
+        row_p = np.vstack([A_p[rows], np.zeros((bound.size, self.columns.size))])[keep]
+        try:
+            solution = spla.splu(kkt).solve(-np.vstack([H_p, row_p]))
+        except RuntimeError as error:  # exactly singular: no law
+            return f"the KKT matrix is singular ({error})"
+        if not np.all(np.isfinite(solution)):
+            return "the KKT matrix is singular"
+        # each active multiplier keeps its sign: lower-bound rows lam <= 0, upper-bound rows lam >= 0 (CasADi)
+        lower = np.concatenate([lower_rows, lower_bound])[keep]
+        sign = np.where(lower, -1.0, 1.0)
+        scale = 1.0 + np.abs(lam)
+        equality = np.concatenate([lbg[rows] == ubg[rows], lbx[bound] == ubx[bound]])[keep]
+        ineq = ~equality
+        return FeedbackLaw(
+            w=w.copy(), par=par.copy(), columns=self.columns, dw=np.asfortranarray(solution[:n_w]),
+            u0_index=np.asarray(u0_index, int),
+            multiplier=(sign * lam / scale)[ineq], multiplier_change=np.asfortranarray(
+                (sign[:, None] * solution[n_w:] / scale[:, None])[ineq]),
+            seconds=clock.perf_counter() - begin)
+
+
+def _active(values: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the rows at a bound (equalities included) and, for each, whether it is the lower one."""
+    with np.errstate(invalid="ignore"):
+        at_lower = np.isfinite(lower) & (values - lower <= ACTIVE_TOLERANCE * (1.0 + np.abs(lower)))
+        at_upper = np.isfinite(upper) & (upper - values <= ACTIVE_TOLERANCE * (1.0 + np.abs(upper)))
+    rows = np.flatnonzero(at_lower | at_upper)
+    return rows, at_lower[rows] & ~at_upper[rows]
+
+
+@dataclass
+class FeedbackLaw:
+    """A prepared solution w [n_w] at parameters par and its first-order change dw = dw_dp @ dp.
+
+    columns: the parameters followed (indices into par); dw [n_w, len(columns)]; u0_index [m];
+    multiplier [k]: the active inequalities' multipliers, signed so that >= 0 keeps each active,
+    scaled by 1 + |lam|; multiplier_change [k, len(columns)] their change; seconds: time to build it.
+    """
+
+    w: np.ndarray
+    par: np.ndarray
+    columns: np.ndarray
+    dw: np.ndarray
+    u0_index: np.ndarray
+    multiplier: np.ndarray
+    multiplier_change: np.ndarray
+    seconds: float = 0.0
+
+    def change(self, par: np.ndarray) -> np.ndarray | None:
+        """The change of the followed parameters to `par` [n_p] (None: another parameter changed too, e.g.
+        the target or a weight: the law does not follow those)."""
+        dp = par - self.par
+        followed = dp[self.columns]
+        dp[self.columns] = 0.0
+        if np.any(dp != 0.0):
+            return None
+        return followed
+
+    def predict(self, dp: np.ndarray) -> np.ndarray | None:
+        """The plan w + dw [n_w] for the change dp of the followed parameters, or None where an active
+        constraint would leave the active set (its multiplier crosses zero)."""
+        moved = np.flatnonzero(dp)
+        step = dp[moved]
+        if self.multiplier.size and np.any(self.multiplier + self.multiplier_change[:, moved] @ step
+                                           < -MULTIPLIER_TOLERANCE):
+            return None
+        return self.w + self.dw[:, moved] @ step

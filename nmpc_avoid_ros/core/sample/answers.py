@@ -1,0 +1,153 @@
+"""What a sample answers (a mixin of NmpcController, core/sample/controller.py): the best plan applied and
+guarded, or the fallback; a sample without a new state coasts on the plan."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..nlp.search import VIOLATION_TOLERANCE, Candidate, SearchReport
+from ..nlp.tiers import TieredNlp
+from .memory import Sample
+from .status import StepStatus
+from .step_result import Plan, StepResult
+
+#: solver status of a sample whose state lies outside the solve domain (no solver was called)
+OUTSIDE_SOLVE_DOMAIN = "outside_solve_domain"
+
+
+class SampleAnswers:
+    """Apply, guard, fall back and coast for NmpcController (every method reads its memory and selectors)."""
+
+    def _apply(self, sample: Sample, best: Candidate, report: SearchReport) -> StepResult:
+        """Keep `best` as the plan and answer its first input (status ok, or truncated for a budget-cut one)."""
+        mem = self.memory
+        mem.pending, mem.reseed = None, False
+        report.kept = report.kept or best.label
+        active = self.active_nlp
+        lam_x, lam_g = best.lam_x, best.lam_g
+        if best.nlp is not active:  # solved by another NLP (the reference, a tier): multipliers start from zero
+            lam_x, lam_g = np.zeros(active.layout.n_w), np.zeros(active.lbg.size)
+        U, X, y_a, _ = best.nlp.layout.split_w(best.w)
+        x_a, u_a = (v.copy() for v in best.nlp.steady(best.w))
+        costs = tuple(float(c[0]) for c in best.nlp.terms(best.w, sample.par))
+        mem.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
+        regular = sample.regular
+        status = StepStatus.OK if best.solved else StepStatus.TRUNCATED if best.budget_cut else StepStatus.UNCONVERGED
+        result = self._result(mem.plan, sample.x, 0, status, regular.solver_status, regular.iterations,
+                              regular.budget_cut)
+        result.horizon = best.nlp.layout.horizon
+        return result
+
+    def _guard(self, sample: Sample, best: Candidate, result: StepResult) -> StepResult:
+        """A plan that predicts penetration (e.g. a region placed over the current state) gives way to the
+        input that predicts the least violation (FallbackSelector.check_plan), and says so. An avoidable
+        penetration is overridden for at most N samples in a row, so that a plan the solver keeps
+        choosing does not hold the plant still for good. When even that input penetrates the regions as
+        planned around (inflated by the margins), the choice is made again against the regions themselves:
+        only if they cannot be avoided either is it `region_unavoidable` (else `margin_unavoidable`)."""
+        mem, H = self.memory, self.fallback.horizon
+        if not (self.settings.mu > 0 and best.depth > VIOLATION_TOLERANCE):
+            return result
+        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end)
+        if choice is not None and choice.unavoidable and self._given != self._regions:
+            real = self.fallback.check_plan(sample.x, self._given_parameters(sample), result.inputs[:H], sample.end)
+            sample.seconds += 0.0 if real is None else real.solve_time
+            result.margin_unavoidable = real is None or not real.unavoidable
+            if result.margin_unavoidable:
+                why = "margin unavoidable (the regions themselves are avoidable)"
+                result.fallback_reason = f"{why}; {real.reason if real else 'plan: clear of them'}"
+                result.fallback_predicted = dict(real.predicted) if real else {}
+                sample.seconds += choice.solve_time
+                if real is None:
+                    return result
+                choice = real
+        if choice is None or (not choice.unavoidable and mem.overrides >= self.nlp.layout.horizon):
+            mem.overrides = 0
+            return result
+        result.region_unavoidable = choice.unavoidable
+        result.predicted_violation = choice.violation
+        if not result.margin_unavoidable:
+            result.fallback_predicted = dict(choice.predicted)
+            why = "region unavoidable from the current state" if choice.unavoidable else "plan predicts penetration"
+            result.fallback_reason = f"{why}; {choice.reason}"
+        sample.seconds += choice.solve_time
+        if choice.kind != "plan":
+            mem.overrides += not choice.unavoidable
+            result.status = StepStatus(f"fallback_{choice.kind}")
+            result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
+        return result
+
+    def _given_parameters(self, sample: Sample) -> np.ndarray:
+        """The sample's parameters with the regions as given, without the margins they are planned around with."""
+        return self.parameters(sample.x, sample.y_t, sample.time, slots=self.given_slot_values(sample.time))
+
+    def _fall_back(self, sample: Sample, last: Candidate | None) -> StepResult:
+        """No usable plan: the candidate input predicting the least violation (core/sample/fallback.py); the plan
+        ages by one. A budget-cut iterate of the regular NLP is continued next sample; a fast path whose
+        warm solve failed outright re-seeds through the cold-start starts."""
+        mem, x, par = self.memory, sample.x, sample.par
+        if last is not None:
+            regular = last.nlp.regular if isinstance(last.nlp, TieredNlp) else last.nlp
+            mem.pending = (last.w, last.lam_x, last.lam_g) if (
+                last.finite and last.budget_cut and regular is self.active_nlp) else None
+            mem.reseed = self.cold_nlp is not None and mem.pending is None and not mem.passage
+        status, iterations, budget_cut = (OUTSIDE_SOLVE_DOMAIN, 0, False) if last is None else (
+            last.solver_status, last.iterations, last.budget_cut)
+        plan = mem.plan
+        shifted = u_a = None
+        N = H = self.fallback.horizon  # the selector simulates N inputs: of a long plan, its first N
+        if plan is not None:
+            plan.age += 1
+            N = len(plan.inputs)
+            shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])[:H]
+            u_a = plan.u_a
+        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, sample.in_domain,
+                                      sample.end)
+        sample.seconds += choice.solve_time
+        if plan is not None and choice.kind in ("shift", "steady"):
+            result = self._result(plan, x, plan.age, StepStatus(f"fallback_{choice.kind}"), status, iterations,
+                                  budget_cut)
+        else:
+            nan_p = np.full(self.model.p, np.nan) if plan is None else plan.y_a.copy()
+            nan_n = np.full(self.model.n, np.nan) if plan is None else plan.x_a.copy()
+            u_a_out = choice.inputs[0].copy() if plan is None else plan.u_a.copy()
+            result = StepResult(choice.inputs[0].copy(), choice.states, choice.inputs.copy(), nan_p, nan_n, u_a_out,
+                                math.nan, math.nan, math.nan, StepStatus(f"fallback_{choice.kind}"), status,
+                                iterations, 0.0, budget_cut)
+        result.fallback_reason, result.fallback_predicted = choice.reason, dict(choice.predicted)
+        result.predicted_violation = choice.violation
+        result.horizon = 0 if last is None else last.nlp.layout.horizon
+        return result
+
+    def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
+                budget_cut: bool) -> StepResult:
+        """The result of applying `plan` aged by `age` samples at state x (the solve time is set by `step`)."""
+        N = len(plan.inputs)  # the regular horizon, or the passage mode's
+        # into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond them seen)
+        inputs = np.clip(np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))]), self._input_lo,
+                         self._input_hi)
+        states = np.vstack([x, plan.states[age + 1:], np.tile(plan.x_a, (min(age, N), 1))])
+        return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
+                          *plan.costs, status, solver_status, iterations, 0.0, budget_cut)
+
+    def coast(self) -> StepResult | None:
+        """A sample without a new measurement: the next input of the last plan (then u_a).
+
+        The plan ages by one sample, so the next `step` shifts its warm start accordingly; the
+        result's first state is the plan's prediction for now. None when there is no plan yet.
+        Status FALLBACK_SHIFT (or FALLBACK_STEADY once the plan is used up), solver status
+        'no_new_state'.
+        """
+        plan = self.memory.plan
+        self.memory.prepared = None  # prepared for the sample this one replaces
+        if plan is None:
+            return None
+        plan.age += 1
+        N = len(plan.inputs)
+        predicted = plan.states[plan.age] if plan.age <= N else plan.x_a
+        status = StepStatus.FALLBACK_SHIFT if plan.age < N else StepStatus.FALLBACK_STEADY
+        result = self._result(plan, predicted, plan.age, status, "no_new_state", 0, False)
+        self.memory.command = result.u.copy()
+        return result

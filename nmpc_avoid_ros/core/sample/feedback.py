@@ -1,0 +1,108 @@
+"""The sample in two phases: preparation between the samples, feedback when the state arrives.
+
+With `feedback: true` a caller that calls `NmpcController.prepare()` after sending each command gets
+this (docs/design.md, 'Preparation and feedback'):
+
+* preparation (`prepare`): the state the plan predicts for the next sample's planning instant, x̄,
+  goes through the whole sample (the search with its escapes and passage, one time bound); a
+  converged, clear plan becomes the prepared plan, with its feedback law (core/nlp/sensitivity.py);
+* feedback (the next `step`): the law moves the prepared plan to the state that arrived; if the
+  inputs are the prepared ones (target, weights, regions and margins; moving regions are followed),
+  no active constraint leaves its active set, and the moved plan is feasible to
+  `feasibility_tolerance` with its slacks within VIOLATION_TOLERANCE (the same test as a searched
+  plan's), its first input is the command: no solver runs. Otherwise the sample searches as before,
+  warm-started from the prepared plan.
+
+The plan the law starts from is the same converged solution a searched sample would apply for x̄, so
+the closed loop is the searched one's to first order in x - x̄ (measured on the paper's run, live
+config: commands within 1e-10 of a full solve at the same state; docs/design.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ..nlp.buffered import Buffered
+from ..nlp.search import VIOLATION_TOLERANCE
+from ..nlp.sensitivity import FeedbackLaw, KktSensitivity
+from ..nlp.tracking import NlpBase
+from .status import FeedbackOutcome
+from .step_result import Plan
+
+
+@dataclass
+class Prepared:
+    """A sample solved ahead: the plan for the state x [n] predicted at `time` (s, the regions' clock, or
+    None) with the delay `delay` (s) of the sample it is for; its NLP and law (or why there is none);
+    seconds: the preparation's solver time plus building the law."""
+
+    plan: Plan
+    nlp: NlpBase
+    law: FeedbackLaw | None
+    why: str
+    x: np.ndarray
+    time: float | None
+    delay: float
+    seconds: float
+
+
+class FeedbackLaws:
+    """The KKT sensitivity of each NLP a plan is kept in (the regular and the passage NLP), and each one's
+    feasibility test of a moved plan; all built in the constructor (core/nlp/sensitivity.py)."""
+
+    def __init__(self, nlps: list[NlpBase]) -> None:
+        self._sensitivity: dict[int, KktSensitivity] = {}
+        self._violation: dict[int, Buffered] = {}
+        for nlp in nlps:
+            n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
+            followed = np.concatenate([np.arange(n), np.arange(count - size, count)])  # x(0) and the slots
+            self._sensitivity[id(nlp)] = KktSensitivity(nlp.problem, followed)
+            self._violation[id(nlp)] = Buffered(_violation_function(nlp))
+
+    def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
+        """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none."""
+        layout = nlp.layout
+        rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
+        w = nlp.fill_slacks(layout.join_w(plan.inputs, plan.states[1:], plan.y_a, rest, x0=plan.states[0]), par)
+        return self._sensitivity[id(nlp)].law(w, par, (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg), _first_input(layout))
+
+    def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float
+               ) -> tuple[np.ndarray | None, FeedbackOutcome]:
+        """The prepared plan's w moved to the parameters `par` of the sample that arrived, or None and why."""
+        law = prepared.law
+        if law is None:
+            return None, FeedbackOutcome.NO_LAW
+        change = law.change(par)
+        if change is None:
+            return None, FeedbackOutcome.INPUTS_CHANGED
+        w = law.predict(change)
+        if w is None:
+            return None, FeedbackOutcome.ACTIVE_SET_CHANGED
+        nlp = prepared.nlp
+        # the slacks bound every region row (s >= g), so feasible slacks within the tolerance keep it clear
+        slack_ok = not nlp._slack_index.size or float(np.max(w[nlp._slack_index])) <= VIOLATION_TOLERANCE
+        if not slack_ok or float(self._violation[id(nlp)](w, par)[0][0]) > feasibility_tolerance:
+            return None, FeedbackOutcome.INFEASIBLE
+        return w, FeedbackOutcome.ANSWERED
+
+
+def _violation_function(nlp: NlpBase) -> ca.Function:
+    """(w, p) -> the largest violation of the NLP's constraints and bounds (0 if feasible), one CasADi call."""
+    w, p, g = nlp.problem["x"], nlp.problem["p"], nlp.problem["g"]
+    rows = []
+    for values, lower, upper in ((g, nlp.lbg, nlp.ubg), (w, nlp.lbx, nlp.ubx)):
+        low, high = np.flatnonzero(np.isfinite(lower)), np.flatnonzero(np.isfinite(upper))
+        rows += [ca.DM(lower[low]) - values[low.tolist()], values[high.tolist()] - ca.DM(upper[high])]
+    return ca.Function("violation", [w, p], [ca.mmax(ca.vertcat(*rows, 0))])
+
+
+def _first_input(layout) -> np.ndarray:
+    """Where u(0) [m] sits in w: the entries join_w fills from the first input alone."""
+    N, n, m, p = layout.horizon, layout.n, layout.m, layout.p
+    first = np.zeros((N, m))
+    first[0] = 1.0
+    rest = None if layout.closed_form else np.zeros(n + m)
+    return np.flatnonzero(layout.join_w(first, np.zeros((N, n)), np.zeros(p), rest))
