@@ -7,7 +7,9 @@ executor delays: a sample started 17 ms late held the previous command 17 ms lon
 assumed, and the plant left the box by 4e-3), so commands leave one sample apart and the instant the
 plan was predicted for is the instant the command leaves; a solve that takes longer publishes at once
 and is counted (`late_commands`). With 0 the command leaves at once and the prediction uses the median of the last
-LATENCY_WINDOW samples' start-to-publish times. Lockstep never predicts: its plant waits for the command.
+LATENCY_WINDOW samples' start-to-publish times. A sample answered by its prepared plan (core/sample/feedback.py)
+is never held: its command leaves at once, predicted from the median of the last such samples' times, kept
+apart. Lockstep never predicts: its plant waits for the command.
 """
 
 from __future__ import annotations
@@ -30,16 +32,18 @@ class CommandTiming:
 
     def __init__(self) -> None:
         self.latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self.answered: deque[float] = deque(maxlen=LATENCY_WINDOW)  # the samples a prepared plan answered
         self.late_commands = 0
 
-    def expected(self) -> float:
+    def expected(self, answered: bool = False) -> float:
         """s from a sample's start to its command's publication without a hold: the median of the last samples'
-        (0: none yet)."""
-        return float(np.median(self.latencies)) if self.latencies else 0.0
+        (`answered`: of those a prepared plan answered; 0: none yet)."""
+        window = self.answered if answered else self.latencies
+        return float(np.median(window)) if window else 0.0
 
-    def predicted(self, state_age: float, hold: float) -> float:
+    def predicted(self, state_age: float, hold: float, answered: bool = False) -> float:
         """s from the state's measurement to the command's departure, as the next step should predict it."""
-        return state_age + (hold if hold > 0 else self.expected())
+        return state_age + (hold if hold > 0 else self.expected(answered))
 
     def hold_until(self, started: float, hold: float) -> float:
         """Wait until `hold` s after `started` (time.perf_counter s); at once if that has passed. Sleeps, then
@@ -61,9 +65,14 @@ class CommandTiming:
         `since_tick` s ago; 0 when that has passed (the command leaves at once, late) or nothing is held."""
         return max(command_latency - since_tick, 0.0) if command_latency > 0 else 0.0
 
-    def record(self, latency: float, waited: float, hold: float, command_latency: float = 0.0) -> None:
+    def record(self, latency: float, waited: float, hold: float, command_latency: float = 0.0,
+               answered: bool = False) -> None:
         """A command left `latency` s after its sample started, `waited` s of it held back, for a hold of `hold`
-        s of a `command_latency` (late when it left after the hold, or had nothing left to hold)."""
+        s of a `command_latency` (late when it left after the hold, or had nothing left to hold); `answered`: a
+        prepared plan answered it, never held."""
+        if answered:
+            self.answered.append(latency)
+            return
         self.latencies.append(latency - waited)
         if command_latency > 0 and (hold <= 0 or latency > hold + LATE_COMMAND_SLACK):
             self.late_commands += 1

@@ -2,13 +2,12 @@
 
     ros2 run nmpc_avoid_ros controller --ros-args --params-file config/van_der_pol.yaml
 
-A managed (lifecycle) node: parameters are declared at creation; `configure` reads them and builds
-(or loads from the cache) the solver, its publishers and the target/obstacle subscriptions;
-`activate` starts the state subscription and the samples; `deactivate` stops the samples at once
-and publishes one `deactivate_command`; `cleanup`/`shutdown` release the solver and every
-publisher and subscription. An active node that shuts down (the transition, SIGINT or SIGTERM, also
-mid-solve) publishes `deactivate_command` once first and waits until its readers acknowledged it
-(bounded: controller_threads.py `stop_samples`), so a robot is not left driving on the last command.
+A managed (lifecycle) node: parameters are declared at creation; `configure` reads them and builds (or loads
+from the cache) the solver, its publishers and the target/obstacle subscriptions; `activate` starts the state
+subscription and the samples; `deactivate` stops the samples at once and publishes one `deactivate_command`;
+`cleanup`/`shutdown` release the solver and every publisher and subscription. An active node that shuts
+down (the transition, SIGINT or SIGTERM, also mid-solve) publishes `deactivate_command` once first and waits
+until its readers acknowledged it (controller_threads.py `stop_samples`): a robot is not left driving.
 With `autostart` (default) the node walks itself to active, so `ros2 run` alone controls; with
 `autostart: false` a lifecycle manager (or `ros2 lifecycle set`) drives it through the standard
 lifecycle_msgs services.
@@ -16,12 +15,12 @@ lifecycle_msgs services.
 Always answers (controller_threads.py): SIGINT/SIGTERM and lifecycle transitions are honoured
 mid-solve; input floods do not hold the samples up.
 
-Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the
-latest state. A sample that finds no new state since the last solve (lost or late messages)
-applies the next input of the last plan (core `coast`, the shifted plan of the paper's
-feasibility argument) and is counted in `missed_samples`.
-Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message is solved once,
-as it arrives, so the ROS loop reproduces the offline loop exactly.
+Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the latest
+state; a sample without a new state since the last (lost or late messages) applies the next input of the
+last plan (core `coast`) and is counted in `missed_samples`. Lockstep mode (`lockstep: true`, with the plant
+in lockstep): each state message is solved once, as it arrives, as the offline loop does. With the
+`feedback` setting each sample ends by preparing the next (core/sample/feedback.py): a prepared plan answers
+the next state at once, without a hold.
 
 Diagnostics: one DiagnosticArray per sample on /diagnostics, values as strings; the keys are listed in
 docs/reference.md (its **Diagnostics** paragraph). Latency compensation (nodes/command_timing.py,
@@ -29,12 +28,9 @@ core/sample/latency.py): `state_age_ms`, `predicted_delay_ms`, `expected_latency
 `state` is the measured state, `planned_state` the one the plan starts from.
 
 Stability certificate (core/loop/certificate.py, docs/certificate.md): every sample checks the decrease
-of the value function; diagnostics carry `value_function`, `decrease`, `decrease_bound`,
-`certificate_margin`, `certificate` (checked, or why not, and what V_N is the cost of) and the
-counter `certificate_violations`. A violation is WARN with its margin, `certificate_error_after` in a
-row ERROR.
-`~/certificate` (std_msgs/Float64MultiArray) carries the same per sample, in the order of
-core.certificate.LAYOUT (named in `layout.dim[0].label`).
+of the value function (diagnostics `value_function`, `decrease`, `decrease_bound`, `certificate_margin`,
+`certificate`, `certificate_violations`); a violation is WARN, `certificate_error_after` in a row ERROR.
+`~/certificate` (std_msgs/Float64MultiArray) carries the same per sample (core.certificate.LAYOUT order).
 """
 
 from __future__ import annotations
@@ -58,6 +54,7 @@ from ..core.errors import ConfigError, InputError, NmpcError, RegionError
 from ..core.loop.alarm import AvoidanceCheck
 from ..core.loop.certificate import CertificateSample, StabilityCertificate
 from ..core.sample.controller import NmpcController
+from ..core.sample.status import FeedbackOutcome
 from ..core.sample.step_result import StepResult
 from ..ros.conversions import array_to_vector
 from ..ros.markers import RegionStore
@@ -415,18 +412,20 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
         # real time: the state is state_age old now and the command leaves a solve later (core/sample/latency.py)
         compensate = self.options.latency_compensation and not self.lockstep
         self.cover_hold = self.options.command_latency if compensate else 0.0
-        # counted from the timer's tick, not from this callback: commands leave one sample apart (command_timing.py)
+        # counted from the timer's tick, not from this callback: commands leave one sample apart (command_timing.py);
+        # a prepared plan's answer leaves at once (core/sample/feedback.py)
         hold = self.timing.hold_after_tick(self.cover_hold, since_tick)
         ahead = self.timing.predicted(self.state_age, hold) + self.options.transport_delay if compensate else 0.0
-        result = self.controller.step(self.state, self.target, time=self.state_time, latency=ahead,
+        quick = self.timing.predicted(self.state_age, 0.0, True) + self.options.transport_delay if compensate else 0.0
+        result = self.controller.step(self.state, self.target, time=self.state_time, latency=quick,
+                                      search_latency=ahead,
                                       command=self.last_command if compensate and self.last_result else None)
-        self.state_solved = True
-        self.fresh_state = False
-        self.last_result = result
-        waited = self.timing.hold_until(started, hold)  # the instant the plan was predicted for
+        self.state_solved, self.fresh_state, self.last_result = True, False, result
+        answered = result.feedback is FeedbackOutcome.ANSWERED
+        waited = 0.0 if answered else self.timing.hold_until(started, hold)  # the instant the plan was predicted for
         self.send_command(result.u, None if self.lockstep else result.inputs[1:])  # the late cover's inputs
         latency = time.perf_counter() - started
-        self.timing.record(latency, waited, hold, self.cover_hold)
+        self.timing.record(latency, waited, hold, 0.0 if answered else self.cover_hold, answered)
         if compensate:
             self.controller.command_sent(self.state_time + self.state_age + latency + self.options.transport_delay)
         if result.is_fallback:
@@ -456,6 +455,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
                 level = DiagnosticStatus.ERROR if certificate.level == "error" else DiagnosticStatus.WARN
             self.get_logger().warning(f"{result.status}; {note}", throttle_duration_sec=self.options.log_throttle)
         self.publish_diagnostics(level, message, result, latency)
+        self.controller.prepare(quick)  # the next sample solved ahead, after everything of this one went out
 
     def publish_safe(self, why: str) -> None:
         """No solve: command the configured safe behaviour and report an ERROR (every sample)."""

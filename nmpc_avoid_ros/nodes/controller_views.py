@@ -90,6 +90,10 @@ def diagnostic_array(name: str, stamp: Time, level: bytes, message: str, values:
             "region_unavoidable": str(result.region_unavoidable), "escape": result.escape,
             "fallback_predicted": json.dumps(result.fallback_predicted),  # candidate -> predicted violation
             "horizon": str(result.horizon),
+            # the two phases (core/sample/feedback.py): the preparation ran between the samples, the feedback
+            # gave the command; solve_time_ms counts both with the sample's own search
+            "feedback": str(result.feedback or ""), "feedback_ms": f"{result.feedback_time * 1e3:.4f}",
+            "preparation_ms": f"{result.preparation_time * 1e3:.3f}",
         })
     if cert is not None:
         values.update({"value_function": repr(cert.value_function), "decrease": repr(cert.decrease),

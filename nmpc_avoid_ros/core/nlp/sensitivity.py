@@ -14,9 +14,9 @@ with H the Hessian of the Lagrangian f + lam_g' g, A_a the Jacobian of the activ
 bounds (equalities, inequalities at a bound) and dp the change of the parameters the law follows (the
 initial state x(0) and the obstacle slots, which move with time). The active set is read from the
 solution itself (a row within `ACTIVE_TOLERANCE` of a bound), so a plan solved on another NLP of the
-same problem (an ellipse tier, the reference) gets a law too; the multipliers are the least-squares
-ones of the stationarity condition on that set, and dependent rows (a slack bounded by nine copies of
-the same row of an empty slot) are dropped by a pivoted QR.
+same problem (an ellipse tier, the reference) gets a law too; the multipliers solve the KKT system on
+that set (rows with a wrong-signed multiplier leave it), regularised so that dependent rows (a slack
+bounded by nine copies of the same row of an empty slot) share theirs.
 
 The law answers only where it is right: the active constraints keep the sign of their multipliers
 (else the active set changes: a QP, not this), and the corrected plan w + dw is feasible to the
@@ -31,19 +31,19 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 #: a constraint row or bound this close to its bound (scaled by 1 + |bound|) counts as active
 ACTIVE_TOLERANCE = 1e-6
-#: rows whose pivot in the QR of the active Jacobian is below this share of the largest are dependent
-DEPENDENT_ROW = 1e-9
 #: the stationarity residual |grad f + A_a' lam| allowed, relative to 1 + |grad f|: above it the
 #: active set read from the solution is not the solution's (e.g. a solve stopped short), no law
 STATIONARITY_TOLERANCE = 1e-3
-#: primal regularisation of the KKT matrix (a flat direction such as an unused slack's)
-REGULARISATION = 1e-10
+#: rounds of dropping the rows whose least-squares multiplier has the wrong sign
+ACTIVE_SET_ROUNDS = 8
+#: regularisation of the KKT matrix: primal (a flat direction such as an unused slack's) and dual
+#: (dependent active rows share their multiplier)
+REGULARISATION = 1e-9
 #: an active multiplier may cross zero by this much (relative to 1 + its size) before the law refuses
 MULTIPLIER_TOLERANCE = 1e-6
 
@@ -80,49 +80,62 @@ class KktSensitivity:
         A, A_p = sp.csr_matrix(A.sparse()), np.asarray(A_p)
         rows, lower_rows = _active(g, lbg, ubg)
         bound, lower_bound = _active(w, lbx, ubx)
-        n_w = w.size
-        jacobian = sp.vstack([A[rows], sp.eye(n_w, format="csr")[bound]]).toarray()
-        # dependent rows: keep the ones a pivoted QR of the transposed Jacobian ranks first
-        if jacobian.shape[0]:
-            _, r, pivot = sla.qr(jacobian.T, mode="economic", pivoting=True)
-            diag = np.abs(np.diag(r))
-            keep = np.sort(pivot[:int(np.sum(diag > DEPENDENT_ROW * max(diag[0], 1.0)))])
+        n_w, n_rows = w.size, rows.size
+        candidates = sp.vstack([A[rows], sp.eye(n_w, format="csr")[bound]], format="csr")
+        row_p = np.vstack([A_p[rows], np.zeros((bound.size, self.columns.size))])  # bounds do not depend on p
+        sign = np.where(np.concatenate([lower_rows, lower_bound]), -1.0, 1.0)  # CasADi: lam <= 0 at a lower bound
+        equality = np.concatenate([lbg[rows] == ubg[rows], lbx[bound] == ubx[bound]])
+        keep = np.arange(candidates.shape[0])
+        identity = sp.eye(n_w, format="csc")
+        # the multipliers solve [[I, J'], [J, -dI]] [d; lam] = [-grad f; 0]: at a KKT point d = 0 and lam is the
+        # least-squares multiplier, shared by dependent rows (nine copies of an empty slot's row bound one
+        # slack); the identity, not the Hessian, so that the mu-sized curvature of the slacks does not mix
+        # into lam through d. Rows read as active whose multiplier has the wrong sign are not (a row a hair
+        # from its bound): dropped, and solved again.
+        for _ in range(ACTIVE_SET_ROUNDS):
+            factor = _factor(identity, candidates[keep])
+            if isinstance(factor, str):
+                return factor
+            lam = factor.solve(np.concatenate([-grad_f, np.zeros(keep.size)]))[n_w:]
+            wrong = ~equality[keep] & (sign[keep] * lam < -MULTIPLIER_TOLERANCE * (1.0 + np.abs(lam)))
+            if not wrong.any():
+                break
+            keep = keep[~wrong]
         else:
-            keep = np.zeros(0, int)
-        jacobian = jacobian[keep]
-        lam, *_ = np.linalg.lstsq(jacobian.T, -grad_f, rcond=None)
+            return f"no consistent active set in {ACTIVE_SET_ROUNDS} rounds"
+        jacobian = candidates[keep]
         residual = np.linalg.norm(grad_f + jacobian.T @ lam)
         if residual > STATIONARITY_TOLERANCE * (1.0 + np.linalg.norm(grad_f)):
             return f"the active set read from the plan leaves a stationarity residual of {residual:.2g}"
-        n_rows = rows.size
         kept_rows = keep[keep < n_rows]
         lam_g = np.zeros(g.size)
-        lam_g[rows[kept_rows]] = lam[:kept_rows.size]
+        np.add.at(lam_g, rows[kept_rows], lam[:kept_rows.size])
         H, H_p = self._second(w, par, lam_g)
-        H, H_p = sp.csc_matrix(H.sparse()), np.asarray(H_p)
-        k = jacobian.shape[0]
-        kkt = sp.bmat([[H + REGULARISATION * sp.eye(n_w), sp.csc_matrix(jacobian.T)],
-                       [sp.csc_matrix(jacobian), -REGULARISATION * sp.eye(k)]], format="csc")
-        # the parameters' part of the active rows: constraint rows from A_p, bounds do not depend on p
-        row_p = np.vstack([A_p[rows], np.zeros((bound.size, self.columns.size))])[keep]
-        try:
-            solution = spla.splu(kkt).solve(-np.vstack([H_p, row_p]))
-        except RuntimeError as error:  # exactly singular: no law
-            return f"the KKT matrix is singular ({error})"
+        factor = _factor(sp.csc_matrix(H.sparse()), jacobian)
+        if isinstance(factor, str):
+            return factor
+        solution = factor.solve(-np.vstack([np.asarray(H_p), row_p[keep]]))
         if not np.all(np.isfinite(solution)):
             return "the KKT matrix is singular"
-        # each active multiplier keeps its sign: lower-bound rows lam <= 0, upper-bound rows lam >= 0 (CasADi)
-        lower = np.concatenate([lower_rows, lower_bound])[keep]
-        sign = np.where(lower, -1.0, 1.0)
-        scale = 1.0 + np.abs(lam)
-        equality = np.concatenate([lbg[rows] == ubg[rows], lbx[bound] == ubx[bound]])[keep]
-        ineq = ~equality
+        # each active multiplier keeps its sign
+        sign, scale, ineq = sign[keep], 1.0 + np.abs(lam), ~equality[keep]
         return FeedbackLaw(
             w=w.copy(), par=par.copy(), columns=self.columns, dw=np.asfortranarray(solution[:n_w]),
             u0_index=np.asarray(u0_index, int),
             multiplier=(sign * lam / scale)[ineq], multiplier_change=np.asfortranarray(
                 (sign[:, None] * solution[n_w:] / scale[:, None])[ineq]),
             seconds=clock.perf_counter() - begin)
+
+
+def _factor(hessian: sp.csc_matrix, jacobian: sp.csr_matrix) -> spla.SuperLU | str:
+    """The sparse LU of the regularised KKT matrix [[H + dI, J'], [J, -dI]], or why there is none."""
+    n, k = hessian.shape[0], jacobian.shape[0]
+    kkt = sp.bmat([[hessian + REGULARISATION * sp.eye(n), jacobian.T], [jacobian, -REGULARISATION * sp.eye(k)]],
+                  format="csc")
+    try:
+        return spla.splu(kkt)
+    except RuntimeError as error:  # exactly singular
+        return f"the KKT matrix is singular ({error})"
 
 
 def _active(values: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

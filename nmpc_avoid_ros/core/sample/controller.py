@@ -176,24 +176,32 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
 
     # -- the sample --------------------------------------------------------------------------
     def step(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None = None,
-             time: float | None = None, latency: float = 0.0, command: Sequence[float] | None = None
-             ) -> StepResult:
+             time: float | None = None, latency: float = 0.0, command: Sequence[float] | None = None,
+             search_latency: float | None = None) -> StepResult:
         """Solve for the measured state x [n] and target y_t [p]; regions replace the current ones if given.
 
         `time` (s, the clock of the regions' stamps) is when x was measured. The plan starts from x
         predicted `latency` + `input_delay` s later (at most one sample; core/sample/latency.py) under
         `command` [m], the command in force (default: the last step's u; none yet: no prediction);
-        moving regions are placed at that instant (see `slot_values`). Returns within `sample_budget()`
-        + TIME_BOUND_MARGIN.
+        moving regions are placed at that instant (see `slot_values`). A sample prepared by `prepare` is
+        answered from its plan where the feedback law holds (core/sample/feedback.py), else searched; a
+        caller that holds a searched sample's command longer (the node's `command_latency`) gives that
+        latency as `search_latency` (default `latency`). Returns within `sample_budget()` + TIME_BOUND_MARGIN.
 
         Raises InputError for a wrong-size or non-finite x or y_t and RegionError for regions that
         do not fit; the controller's state is unchanged then.
         """
-        sample = self._prepare(x, y_t, regions, time, latency, command)
         mem = self.memory
-        prepared, mem.prepared = mem.prepared, None
+        searched = latency if search_latency is None else search_latency
+        prepared = mem.prepared
+        sample = self._prepare(x, y_t, regions, time, searched if prepared is None else latency, command)
+        mem.prepared = None
         result = None if prepared is None else self._feedback(sample, prepared)
         if result is None:
+            if prepared is not None:  # the law did not hold: the mismatch now, and a searched sample's latency
+                outcome = sample.feedback
+                sample = self._prepare(x, y_t, None, time, searched, command)
+                sample.feedback = outcome
             result = self._solve(sample)
         if prepared is not None:
             result.preparation_time = prepared.seconds
@@ -224,21 +232,27 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         if last.sent_at is not None:
             self.command_sent(last.sent_at)
 
-    def prepare(self, delay: float | None = None) -> Prepared | None:
+    @property
+    def prepared(self) -> Prepared | None:
+        """The plan prepared for the next sample (`prepare`), or None."""
+        return self.memory.prepared
+
+    def prepare(self, latency: float | None = None) -> Prepared | None:
         """Between samples, after the last step's command left: solve the next sample ahead (`feedback` setting).
 
-        The next sample is expected one sample_time after the last, its state predicted `delay` s (default: the
-        last sample's delay) past its measurement. That state, as the last plan predicts it, goes through the
-        whole sample (the search, within `sample_budget()`); a converged, clear plan is kept with its feedback
-        law, and the next `step` answers from it when the law holds (core/sample/feedback.py). Returns what was
-        prepared; None with the setting off or nothing to predict from (no step yet, or no plan applied)."""
+        The next sample is expected one sample_time after the last, its state predicted `latency` + input_delay
+        s past its measurement (default: the last sample's delay), as `step` will with that latency. That state,
+        as the last plan predicts it, goes through the whole sample (the search, within `sample_budget()`); a
+        converged, clear plan is kept with its feedback law, and the next `step` answers from it when the law
+        holds (core/sample/feedback.py). Returns what was prepared; None with the setting off or nothing to
+        predict from (no step yet, or no plan applied)."""
         mem, s = self.memory, self.settings
         begin = clock.perf_counter()
         self._settle()
         last, plan = mem.last, mem.plan
         if self.feedback_laws is None or last is None or plan is None or plan.age != 0 or mem.command is None:
             return None
-        delay = last.delay if delay is None else min(max(float(delay), 0.0), self.latency.max_delay)
+        delay = last.delay if latency is None else self.latency.delay(latency, s.input_delay, mem.command)
         x = self.latency.shift(plan.states[1], mem.command, delay - last.delay)
         start = None if last.time is None else last.time + s.sample_time + delay - last.delay
         sample = self._sample(x, last.y_t, start, begin, measured=x, delay=delay, command=mem.command)
@@ -250,8 +264,10 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
             return None
         self._apply(sample, best, report)
         nlp = self.active_nlp
-        law = self.feedback_laws.prepare(nlp, mem.plan, sample.par) if best.solved and best.clear else \
-            "the prepared plan is not converged and clear"
+        # an unconverged plan (e.g. FATROP stopped at an acceptable point) gets a law where its KKT residual allows
+        # (with mu = 0 nothing is avoided: a penetrating plan is the problem's answer, as the guard holds)
+        law = self.feedback_laws.prepare(nlp, mem.plan, sample.par) if best.clear or s.mu == 0 else \
+            "the prepared plan penetrates"
         mem.plan.age = -1  # the plan of the sample to come
         mem.prepared = Prepared(mem.plan, nlp, None if isinstance(law, str) else law, law if isinstance(law, str)
                                 else "", x, start, delay, clock.perf_counter() - begin)
@@ -261,7 +277,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         """The prepared plan moved to this sample's state by its law, as the result; None (the sample searches)
         where the law does not hold (core/sample/feedback.py), with why in `sample.feedback`."""
         assert self.feedback_laws is not None
-        w, outcome = self.feedback_laws.answer(prepared, sample.par, self.settings.feasibility_tolerance) \
+        s = self.settings
+        w, outcome = self.feedback_laws.answer(prepared, sample.par, s.feasibility_tolerance, clear=s.mu > 0) \
             if sample.in_domain else (None, FeedbackOutcome.INFEASIBLE)
         sample.feedback = outcome
         if w is None:

@@ -69,9 +69,10 @@ class FeedbackLaws:
         w = nlp.fill_slacks(layout.join_w(plan.inputs, plan.states[1:], plan.y_a, rest, x0=plan.states[0]), par)
         return self._sensitivity[id(nlp)].law(w, par, (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg), _first_input(layout))
 
-    def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float
+    def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float, clear: bool = True
                ) -> tuple[np.ndarray | None, FeedbackOutcome]:
-        """The prepared plan's w moved to the parameters `par` of the sample that arrived, or None and why."""
+        """The prepared plan's w moved to the parameters `par` of the sample that arrived, or None and why
+        (`clear`: the moved plan's slacks must be within VIOLATION_TOLERANCE, as a searched plan's depth)."""
         law = prepared.law
         if law is None:
             return None, FeedbackOutcome.NO_LAW
@@ -83,7 +84,7 @@ class FeedbackLaws:
             return None, FeedbackOutcome.ACTIVE_SET_CHANGED
         nlp = prepared.nlp
         # the slacks bound every region row (s >= g), so feasible slacks within the tolerance keep it clear
-        slack_ok = not nlp._slack_index.size or float(np.max(w[nlp._slack_index])) <= VIOLATION_TOLERANCE
+        slack_ok = not (clear and nlp._slack_index.size) or float(np.max(w[nlp._slack_index])) <= VIOLATION_TOLERANCE
         if not slack_ok or float(self._violation[id(nlp)](w, par)[0][0]) > feasibility_tolerance:
             return None, FeedbackOutcome.INFEASIBLE
         return w, FeedbackOutcome.ANSWERED

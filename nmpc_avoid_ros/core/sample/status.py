@@ -48,7 +48,8 @@ class FeedbackOutcome(StrEnum):
 
     #: the prepared plan, moved to the state that arrived, gave the command
     ANSWERED = "answered"
-    #: the preparation's plan has no law (not converged, not clear, or its KKT system is degenerate)
+    #: the preparation's plan has no law (it penetrates a region, or its KKT conditions do not hold to the
+    #: tolerance of core/nlp/sensitivity.py)
     NO_LAW = "no_law"
     #: the target, a weight, the region set or a margin changed since the preparation
     INPUTS_CHANGED = "inputs_changed"
