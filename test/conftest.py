@@ -6,6 +6,7 @@ import functools
 import itertools
 import os
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))  # test helpers (rosgraph)
 
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
 from nmpc_avoid_ros.core.loop.closed_loop import ClosedLoopRun, run_closed_loop
+from nmpc_avoid_ros.core.nlp.search import SearchReport
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 
 PAPER_X0 = [-5.0, 0.0]
@@ -21,21 +23,22 @@ PAPER_TARGET = [5.0]
 PAPER_STEPS = 50
 
 
-def count_solves(controller: NmpcController, first: str) -> dict[str, int]:
-    """Count the solver calls of one of the controller's NLPs (`first`: "regular" or the fast path's
-    "reference") and of each ellipse tier ("tier<k>", k its capacity); the dict fills as they run."""
-    nlps = [(first, controller.nlp if first == "regular" else controller.cold_nlp)]
-    nlps += [(f"tier{k}", nlp) for k, nlp in controller.tiered.tiers]
-    calls = {}
-    for name, nlp in nlps:
-        calls[name] = 0
-        original = nlp.solve
-
-        def counted(*args, _name=name, _original=original, **kwargs):
-            calls[_name] += 1
-            return _original(*args, **kwargs)
-
-        nlp.solve = counted
+def solver_calls(controller: NmpcController, searches: Iterable[SearchReport]) -> dict[str, int]:
+    """The solver calls the samples' search reports show, per NLP: 'tier<k>' (the ellipse tier of capacity k,
+    Tried.tier), 'reference' (the fast path's cold-start reference: its start's label), 'passage' (the
+    passage mode's NLP) and 'regular' (the regular NLP); starts skipped for the budget or refused as
+    non-finite guesses made no call (Tried.solver_called)."""
+    calls = {"regular": 0, "reference": 0, "passage": 0, **{f"tier{k}": 0 for k, _ in controller.tiered.tiers}}
+    for report in searches:
+        for t in report.tried:
+            if not t.solver_called:
+                continue
+            if t.tier is not None:
+                calls[f"tier{t.tier}"] += 1
+            elif t.label == "reference":
+                calls["reference"] += 1
+            else:
+                calls["passage" if t.phase in ("passage", "passage_try") else "regular"] += 1
     return calls
 
 

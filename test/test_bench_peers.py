@@ -87,7 +87,7 @@ def test_first_solution_equals_ours(peer):
     assert not sample.failed and sample.iterations > 0 and sample.solve_time > 0
     np.testing.assert_allclose(sample.u, ours.u, atol=1e-5)
     # y_a is decided (not fixed at the target): from x1 = -5, 5 steps only reach about -4.1
-    np.testing.assert_allclose(stepper._plan.y_a, ours.y_a, atol=1e-5)
+    np.testing.assert_allclose(stepper.plan.y_a, ours.y_a, atol=1e-5)
     assert ours.y_a[0] < 0
 
 

@@ -12,12 +12,12 @@ import math
 
 import numpy as np
 import pytest
-from conftest import PAPER_TARGET, PAPER_X0, count_solves
+from conftest import PAPER_TARGET, PAPER_X0, solver_calls
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
 from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
-from nmpc_avoid_ros.core.nlp.search import Start, plan_cost, solve_start
+from nmpc_avoid_ros.core.nlp.search import Outcome, Start, plan_cost, solve_start
 from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
 from nmpc_avoid_ros.core.sample.candidates import Guess, guess_start
 from nmpc_avoid_ros.core.sample.controller import NmpcController
@@ -86,11 +86,11 @@ def kept_cost(controller: NmpcController, x: np.ndarray, y_t: np.ndarray) -> flo
 def test_a_start_among_ellipses_is_solved_on_the_tier_from_the_resting_plan():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
-    calls = count_solves(controller, "reference")
     x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
     result = controller.step(x, y_t, time=0.0)
+    calls = solver_calls(controller, [result.search])
     # clear of the regions: the straight line is not tried
-    assert calls == {"reference": 0, "tier0": 0, "tier2": 0, "tier4": 1}, calls
+    assert calls == {"regular": 0, "reference": 0, "passage": 0, "tier0": 0, "tier2": 0, "tier4": 1}, calls
     report = result.search
     assert result.status == "ok" and (report.phase, report.kept) == ("cold", "rest"), report
     assert [t.label for t in report.tried] == ["rest"]
@@ -102,11 +102,12 @@ def test_a_start_among_ellipses_is_solved_on_the_tier_from_the_resting_plan():
 def test_the_straight_line_is_tried_when_the_resting_plan_is_unusable():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
-    calls = count_solves(controller, "reference")
     straight = controller.escape.cold_guesses(np.array(PAPER_X0, float), np.array(PAPER_TARGET, float))[1]
     assert straight.label == "straight"
+    # patched: no seam injects a cold start's guesses yet (proposed: NmpcController(cold_guesses=...))
     controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller), straight]
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
+    calls = solver_calls(controller, [result.search])
     assert calls["tier4"] == 1 and calls["reference"] == 0, calls  # the broken guess never reaches FATROP
     assert result.status == "ok", result.status
     report = result.search
@@ -118,9 +119,9 @@ def test_the_straight_line_is_tried_when_the_resting_plan_is_unusable():
 def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
     controller = NmpcController(shipped("robot"))
     controller.set_regions(ellipses(ROBOT_0007, "output"))
-    calls = count_solves(controller, "reference")
     x, y_t = np.array(ROBOT_0007["x0"]), np.array(ROBOT_0007["target"])
     result = controller.step(x, y_t, time=0.0)
+    calls = solver_calls(controller, [result.search])
     assert calls["reference"] == 0 and calls["tier4"] == 1, calls
     assert result.status == "ok" and (result.search.phase, result.search.kept) == ("cold", "rest"), result.search
     assert kept_cost(controller, x, y_t) <= reference_start_cost(controller, x, y_t) * (1 + 1e-4)
@@ -134,14 +135,16 @@ def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
 def test_when_no_guess_is_usable_the_reference_solves_the_start():
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(VDP_ELLIPSES)
-    calls = count_solves(controller, "reference")
+    # patched: no seam injects a cold start's guesses yet (proposed: NmpcController(cold_guesses=...))
     controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller)] * 2
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
+    calls = solver_calls(controller, [result.search])
     assert calls["reference"] == 1 and calls["tier4"] == 0, calls  # a non-finite guess never reaches FATROP
     assert result.status == "ok" and [t.solver_status for t in result.search.tried][:2] == ["non_finite_guess"] * 2
     assert result.search.kept == "reference", result.search
     # the loop goes on from the reference's plan on the tier
     after = controller.step(result.states[1], PAPER_TARGET, time=0.5)
+    calls = solver_calls(controller, [result.search, after.search])
     assert after.status == "ok" and calls["reference"] == 1 and calls["tier4"] == 1, calls
 
 
@@ -149,8 +152,8 @@ def test_regions_that_fit_no_tier_start_on_the_reference():
     square = Polygon(((1.0, 1.2), (1.6, 1.2), (1.6, 1.8), (1.0, 1.8)))
     controller = NmpcController(shipped("vdp"))
     controller.set_regions(list(VDP_ELLIPSES[:2]) + [square])
-    calls = count_solves(controller, "reference")
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
+    calls = solver_calls(controller, [result.search])
     assert calls["reference"] == 1 and sum(v for k, v in calls.items() if k.startswith("tier")) == 0, calls
     assert result.status == "ok" and [t.label for t in result.search.tried] == ["reference"], result.search
 
@@ -159,6 +162,7 @@ def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
     controller = NmpcController(shipped("vdp"))
     # the start the campaign run had: from the straight line (the resting plan takes another way)
     guesses = controller.escape.cold_guesses
+    # patched: no seam injects a cold start's guesses yet (proposed: NmpcController(cold_guesses=...))
     controller.escape.cold_guesses = lambda x, y_t: [g for g in guesses(x, y_t) if g.label == "straight"]
     results = []
     run = run_closed_loop(controller, VDP_0336["x0"], VDP_0336["target"], 30,
@@ -178,12 +182,11 @@ def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
     settings = shipped("vdp").replace(max_solve_time=1e-3)
     controller = NmpcController(settings)
     controller.set_regions(VDP_ELLIPSES)
-    calls = count_solves(controller, "reference")
     x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)
     result = controller.step(x, y_t, time=0.0)
-    tried = result.search.tried
+    calls, tried = solver_calls(controller, [result.search]), result.search.tried
     # the resting plan's solve spent the budget: neither the straight line nor the reference is started
     assert calls["tier4"] == 1 and calls["reference"] == 0, calls
     assert [t.label for t in tried] == ["rest", "straight", "reference"], tried
-    assert all(t.outcome == "not tried (sample budget spent)" for t in tried[1:]), tried
+    assert all(t.outcome is Outcome.NOT_TRIED for t in tried[1:]), tried
     assert result.solve_time <= controller.sample_budget() + 0.05

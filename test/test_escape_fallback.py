@@ -66,6 +66,15 @@ def test_campaign_local_minimum_scene_reaches_the_target():
     controller = NmpcController(ControllerSettings(max_solve_time=2.0))
     run = run_closed_loop(controller, VDP_0079["x0"], VDP_0079["target"], 40,
                           regions=lambda k: regions if k == 0 else None)
+    # the escape (in the step's search report): a guess beyond the ellipse, cheaper than the stalled
+    # shifted plan and no deeper, is applied; a guess that predicts more penetration is refused
+    escapes = [report for report in run.searches if report.phase == "escape"]
+    assert escapes and escapes[0].guess_taken, [r.render() for r in escapes]
+    lines = {t.label: t for t in escapes[0].tried}
+    kept, base = lines[escapes[0].kept], lines["shifted"]
+    assert (kept.outcome, base.outcome) == (Outcome.KEPT, Outcome.WORSE), escapes[0]
+    assert kept.cost < base.cost and kept.depth <= base.depth + 1e-4, escapes[0]
+    assert any(t.outcome is Outcome.REFUSED and t.refusal == "penetrates more" for t in escapes[0].tried), escapes[0]
     assert run.x[-1, 0] == pytest.approx(VDP_0079["target"][0], abs=0.05)
     assert max(e.depth(x) for e in regions for x in run.x) <= 1e-3
     assert keep_in_penetration(run.x) <= 1e-3
@@ -91,7 +100,8 @@ def solved(label: str, nlp, w: np.ndarray, cost: float, depth: float) -> Candida
 
 
 def escape(nlp, x, par, base, guesses, time_left):
-    """The escape's search (NmpcController._escape): base and guesses, no deeper than the base."""
+    """`search` (core/nlp/search.py) over the guesses, `base` competing, under the escape's admission
+    (candidates.escape_admission: no deeper than the base)."""
     report = SearchReport()
     best, _, spent = search([guess_start(nlp, x, par, g) for g in guesses], par, time_left, report, "escape", 1e-6,
                             base=base, admit=escape_admission(base))
@@ -124,7 +134,7 @@ def test_the_escape_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_wi
     assert kept is base_cheap and tried[-1].outcome is Outcome.REFUSED and tried[-1].refusal == "penetrates more", tried
     # no time left: the first guess is solved (the budget rule starts one), no further one
     kept, tried, spent = escape(nlp, x, par, base, beyond, 0.0)
-    assert len(beyond) > 1 and all(t.outcome == "not tried (sample budget spent)" for t in tried[1:]), tried
+    assert len(beyond) > 1 and all(t.outcome is Outcome.NOT_TRIED for t in tried[1:]), tried
 
 
 def test_no_escape_without_a_region_across_the_way():

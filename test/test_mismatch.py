@@ -110,7 +110,7 @@ def test_the_controller_widens_the_obstacles_by_the_margin_and_the_certificate_r
     assert controller.memory.mismatch.last_error == pytest.approx(0.1)
     assert controller.mismatch_margin == pytest.approx(0.125)
     assert controller.regions == (ellipse,)  # what is recorded stays the real region
-    planned = controller._regions[0]
+    planned = controller.planned_regions[0]
     assert planned.semi_axes == pytest.approx((0.525, 0.325))
     # the certificate sees the change of the planned problem
     from nmpc_avoid_ros.core.loop.certificate import StabilityCertificate

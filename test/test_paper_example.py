@@ -123,11 +123,10 @@ def test_invalid_inputs_are_refused_and_change_nothing():
 
 
 def test_failed_solve_falls_back_to_the_shifted_plan_then_the_steady_input():
-    controller = NmpcController(ControllerSettings(max_iterations=1))
-    controller_ok = NmpcController(ControllerSettings())
+    controller = NmpcController(ControllerSettings())
     x = np.array([-5.0, 0.0])
-    plan = controller_ok.step(x, [5.0])
-    controller.memory = controller_ok.memory  # the last good plan, then every solve is starved
+    plan = controller.step(x, [5.0])
+    controller.worker.interrupt()  # the last good plan, then every solver call fails (abandoned, core/nlp/worker.py)
     statuses, inputs = [], []
     for k in range(7):
         # the plant follows the plan (its states, then x_a): each candidate is judged from there

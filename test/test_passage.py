@@ -9,13 +9,13 @@ needs a plan from rest in front of the ellipse to rest beyond it within 2.5 s, w
 
 from __future__ import annotations
 
-import casadi
 import numpy as np
 import pytest
 
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
 from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.nlp.worker import ABANDONED
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 
@@ -95,7 +95,7 @@ def test_certificate_skips_the_horizon_switches_and_checks_the_passage(with_pass
     assert not any(c["violated"] for c in certificate)
 
 
-def test_a_failed_passage_solve_falls_back_to_the_shifted_long_plan(monkeypatch):
+def test_a_failed_passage_solve_falls_back_to_the_shifted_long_plan():
     controller = NmpcController(shipped())
     region = Ellipse(*VDP_0100["ellipse"])
     x, y_t = np.array(VDP_0100["x0"]), np.array(VDP_0100["target"])
@@ -107,19 +107,13 @@ def test_a_failed_passage_solve_falls_back_to_the_shifted_long_plan(monkeypatch)
             break
     assert result.search.phase == "passage", "the passage mode was not entered"
     previous = result.inputs.copy()
-    nlp = controller.passage.nlp
-    real = nlp.solve
-
-    def failing(w0, par, lam_x0, lam_g0, cold=False):
-        w, lam_x, lam_g, stats, seconds = real(w0, par, lam_x0, lam_g0, cold)
-        return np.full_like(w, np.nan), lam_x, lam_g, {**stats, "return_status": "Invalid_Number_Detected"}, seconds
-
-    monkeypatch.setattr(nlp, "solve", failing)
+    controller.worker.interrupt()  # the sample's solver call fails: abandoned (core/nlp/worker.py)
     failed = controller.step(x, y_t)
+    assert [(t.label, t.solver_status) for t in failed.search.tried] == [("passage", ABANDONED)], failed.search
     assert failed.status == "fallback_shift" and failed.horizon == controller.passage.horizon
     np.testing.assert_array_equal(failed.u, previous[1])  # the long plan's next input
     assert failed.search.phase == "passage" and controller.memory.passage
-    monkeypatch.setattr(nlp, "solve", real)
+    controller.worker.resume()
     assert controller.step(failed.states[1], y_t).status == "ok"  # and on with the long plan
 
 
@@ -134,27 +128,6 @@ def test_the_two_nlps_share_the_parameter_vector():
     x, u = np.array([1.5, 0.5]), np.zeros(1)
     for t in (0.0, 2.5, 7.5):
         np.testing.assert_array_equal(long_.region_depth(x, u, par, t), short.region_depth(x, u, par, t))
-
-
-def test_nlp_builds_counts_the_long_nlp_and_a_passage_adds_none(monkeypatch):
-    real, constructed = casadi.nlpsol, []
-
-    def counting(*args, **kwargs):
-        constructed.append(args[1])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(casadi, "nlpsol", counting)
-    controller = NmpcController(shipped())
-    # FATROP: the regular NLP, the long one and the 3 ellipse tiers; IPOPT: the cold-start reference, the recovery
-    # and the target projection
-    assert sorted(constructed) == ["fatrop"] * 5 + ["ipopt"] * 3 and controller.nlp_builds == 8
-    x, y_t = np.array(VDP_0100["x0"]), np.array(VDP_0100["target"])
-    controller.set_regions([Ellipse(*VDP_0100["ellipse"])])
-    for _ in range(12):  # the stall escape's 3 guesses, one per sample, then the passage
-        x = controller.step(x, y_t).states[1]
-        if controller.memory.passage:
-            break
-    assert controller.memory.passage and len(constructed) == controller.nlp_builds == 8
 
 
 @pytest.mark.parametrize("changes, message", [

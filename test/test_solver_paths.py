@@ -75,6 +75,7 @@ def test_obstacle_changes_never_rebuild_the_fast_path():
 def test_nlp_builds_counts_every_solver_construction_and_run_time_changes_add_none(monkeypatch):
     """nlp_builds equals the nlpsol Functions really constructed (counted at casadi.nlpsol itself)."""
     import casadi
+    from test_passage import VDP_0100, shipped
 
     real, constructed = casadi.nlpsol, []
 
@@ -82,6 +83,7 @@ def test_nlp_builds_counts_every_solver_construction_and_run_time_changes_add_no
         constructed.append(args[1])  # the plugin
         return real(*args, **kwargs)
 
+    # patched: casadi.nlpsol itself is the independent count nlp_builds is checked against
     monkeypatch.setattr(casadi, "nlpsol", counting_nlpsol)
     # every controller: its path's solver, the fallback's recovery solve and the target projection
     # (IPOPT); a fast path also
@@ -97,6 +99,19 @@ def test_nlp_builds_counts_every_solver_construction_and_run_time_changes_add_no
             controller.update_settings(mu=10.0 ** (4 + 2 * k), kappa=10.0 ** (3 + k), state_weights=(1.0, 2.0))
             x = controller.step(x, [target], [Ellipse((-3.0 + k, 1.0), (0.4, 0.3))]).states[1]
         assert len(constructed) == controller.nlp_builds == len(plugins), solver
+    # the shipped van_der_pol.yaml (test_passage): FATROP: the regular NLP, the passage mode's long one and the
+    # 3 ellipse tiers; IPOPT: the cold-start reference, the recovery and the target projection
+    constructed.clear()
+    controller = NmpcController(shipped())
+    assert sorted(constructed) == ["fatrop"] * 5 + ["ipopt"] * 3 and controller.nlp_builds == 8
+    x, y_t = np.array(VDP_0100["x0"]), np.array(VDP_0100["target"])
+    controller.set_regions([Ellipse(*VDP_0100["ellipse"])])
+    for _ in range(12):  # the stall escape's 3 guesses, one per sample, then the passage: none builds a solver
+        result = controller.step(x, y_t)
+        x = result.states[1]
+        if result.search.entered_passage:
+            break
+    assert result.search.entered_passage and len(constructed) == controller.nlp_builds == 8
 
 
 def test_compiled_solver_is_cached_by_structure(tmp_path):
@@ -171,11 +186,19 @@ def test_stagewise_layout_round_trip_and_dual_shift():
     lam_x = np.arange(layout.n_w, dtype=float)
     lam_g = np.arange(nlp.lbg.size, dtype=float)
     sx, sg = nlp.shift_duals(lam_x, lam_g, 1)
-    blocks_x, blocks_g = nlp._x_blocks, nlp._g_blocks
-    np.testing.assert_array_equal(sx[blocks_x[1]], lam_x[blocks_x[2]])
-    np.testing.assert_array_equal(sg[blocks_g[3]], lam_g[blocks_g[4]])
-    np.testing.assert_array_equal(sx[blocks_x[5]], lam_x[blocks_x[5]])  # the last uniform stage stays
-    assert sx[0] == lam_x[0]  # stage 0 keeps its own
+    start = layout.stage_start
+    block = [slice(start[k], start[k + 1]) for k in range(6)]  # stage k's variables
+    np.testing.assert_array_equal(sx[block[1]], lam_x[block[2]])
+    np.testing.assert_array_equal(sx[block[3]], lam_x[block[4]])
+    np.testing.assert_array_equal(sx[block[5]], lam_x[block[5]])  # the last uniform stage stays
+    np.testing.assert_array_equal(sx[block[0]], lam_x[block[0]])  # stage 0 keeps its own
+    np.testing.assert_array_equal(sx[start[6]:], lam_x[start[6]:])  # and stage N
+    # the constraint multipliers (lam_g = its index): stages 1..4 take the next stage's, one block of B
+    # rows further, in one stretch between stage 0's rows and the last uniform stage's, which stay
+    moved = np.flatnonzero(sg != lam_g)
+    rows = sg[moved] - lam_g[moved]
+    assert moved.size and moved[0] > 0 and np.all(np.diff(moved) == 1), moved
+    assert np.all(rows == rows[0]) and moved.size == 4 * rows[0] and moved[-1] + rows[0] < lam_g.size, rows
 
 
 def test_simulate_picks_a_solver_path_by_name(capsys, tmp_path):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import PAPER_TARGET, PAPER_X0, count_solves
+from conftest import PAPER_TARGET, PAPER_X0, solver_calls
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
 from nmpc_avoid_ros.core.config.settings import ControllerSettings
@@ -24,9 +24,8 @@ BASE = ControllerSettings(max_solve_time=2.0)
 
 def four_ellipse_run(settings: ControllerSettings, regions=VDP_ELLIPSES):
     controller = NmpcController(settings)
-    calls = count_solves(controller, "regular")
     run = run_closed_loop(controller, PAPER_X0, PAPER_TARGET, 45, regions=lambda k: list(regions) if k == 0 else None)
-    return controller, run, calls
+    return controller, run, solver_calls(controller, run.searches)
 
 
 def test_a_tier_solves_the_samples_its_ellipses_fit_and_the_loop_is_the_regular_one():
@@ -59,9 +58,8 @@ def test_a_moving_ellipse_is_predicted_in_the_tier_as_in_the_regular_nlp():
 
     def run(settings):
         controller = NmpcController(settings)
-        calls = count_solves(controller, "regular")
-        return run_closed_loop(controller, PAPER_X0, PAPER_TARGET, 30,
-                               regions=lambda k: [walker] if k == 0 else None), calls
+        run = run_closed_loop(controller, PAPER_X0, PAPER_TARGET, 30, regions=lambda k: [walker] if k == 0 else None)
+        return run, solver_calls(controller, run.searches)
 
     tiered, calls = run(BASE.replace(ellipse_tiers=(1,)))
     reference, _ = run(BASE)

@@ -160,6 +160,7 @@ class OptiIpoptPaper:
     Attributes:
         builds: how many times the Opti problem was built (1; regions never rebuild).
         statuses: IPOPT return status per step.
+        plan: the last finite solution (None before one), the next sample's warm start.
     """
 
     def __init__(self, settings: ControllerSettings, model: Model | None = None, expand: bool = False) -> None:
@@ -168,7 +169,7 @@ class OptiIpoptPaper:
         self.expand = expand
         self.builds = 0
         self.statuses: list[str] = []
-        self._plan: Plan | None = None
+        self.plan: Plan | None = None
         self._build()
 
     def _build(self) -> None:
@@ -245,7 +246,7 @@ class OptiIpoptPaper:
         U, X, y_a, x_var, u_var = self._vars
         opti.set_value(self._x0, x)
         opti.set_value(self._y_t, y_t)
-        U0, X0, ya0, xa0, ua0 = initial_guess(self.pieces, self._plan, x, y_t)
+        U0, X0, ya0, xa0, ua0 = initial_guess(self.pieces, self.plan, x, y_t)
         opti.set_initial(U, U0.T)
         opti.set_initial(X, X0.T)
         opti.set_initial(y_a, ya0)
@@ -268,9 +269,9 @@ class OptiIpoptPaper:
         if all(np.all(np.isfinite(v)) for v in values):
             Uv, Xv, yav, xav, uav = values
             Uv, Xv = Uv.reshape(self.pieces.m, -1).T, Xv.reshape(self.pieces.n, -1).T
-            self._plan = Plan(Uv, Xv, yav.ravel(), xav.ravel(), uav.ravel())
+            self.plan = Plan(Uv, Xv, yav.ravel(), xav.ravel(), uav.ravel())
             return Sample(Uv[0].copy(), solve_time, iterations, failed=failed, budget_exhausted=cut)
-        u = fallback_input(self.pieces, self._plan)
+        u = fallback_input(self.pieces, self.plan)
         return Sample(u, solve_time, iterations, failed=True, fallback=True, budget_exhausted=cut)
 
 
@@ -316,6 +317,7 @@ class DoMpcPeer:
     Attributes:
         builds: how many times the MPC was set up (1; regions never rebuild).
         statuses, make_step_times, solver_times: per step.
+        plan: the last finite solution (None before one), the next sample's warm start.
     """
 
     def __init__(self, settings: ControllerSettings, model: Model | None = None, shifted: bool = True) -> None:
@@ -328,7 +330,7 @@ class DoMpcPeer:
         self.statuses: list[str] = []
         self.make_step_times: list[float] = []
         self.solver_times: list[float] = []
-        self._plan: Plan | None = None
+        self.plan: Plan | None = None
         self._build()
 
     def _build(self) -> None:
@@ -445,8 +447,8 @@ class DoMpcPeer:
         if self._y_t_set is None or not np.array_equal(self._y_t_set, y_t):
             self._tvp["_tvp", :, "y_t"] = ca.DM(y_t)
             self._y_t_set = y_t
-        U0, X0, ya0, _, _ = initial_guess(pc, self._plan, x, y_t)
-        if self.shifted or self._plan is None:
+        U0, X0, ya0, _, _ = initial_guess(pc, self.plan, x, y_t)
+        if self.shifted or self.plan is None:
             self._write_guess(U0, X0, ya0)
         start = perf_counter()
         u0 = mpc.make_step(np.concatenate([x, ya0]).reshape(-1, 1))
@@ -461,12 +463,12 @@ class DoMpcPeer:
         w = np.array(mpc.opt_x_num.cat, float).ravel()
         if np.all(np.isfinite(w)):
             Xs = w[self._ix]
-            self._plan = Plan(w[self._iu].reshape(pc.N, pc.m), Xs[:, :pc.n], Xs[0, pc.n:].copy(),
+            self.plan = Plan(w[self._iu].reshape(pc.N, pc.m), Xs[:, :pc.n], Xs[0, pc.n:].copy(),
                               *pc.steady(Xs[0, pc.n:]))
             return Sample(np.asarray(u0, float).ravel(), wall, iterations, failed=failed, budget_exhausted=cut)
-        u = fallback_input(pc, self._plan)
-        if self._plan is not None:  # never leave a non-finite iterate as the next initial guess
-            U1, X1, ya1, _, _ = initial_guess(pc, self._plan, x, y_t)
+        u = fallback_input(pc, self.plan)
+        if self.plan is not None:  # never leave a non-finite iterate as the next initial guess
+            U1, X1, ya1, _, _ = initial_guess(pc, self.plan, x, y_t)
             self._write_guess(U1, X1, ya1)
         return Sample(u, wall, iterations, failed=True, fallback=True, budget_exhausted=cut)
 

@@ -15,8 +15,9 @@ budget rule and one ranking:
   an escape compares them all).
 
 What was tried is a `SearchReport`: one `Tried` per start (label, phase, solver status, cost,
-predicted depth, seconds, outcome). The campaign, the tests and the diagnostics read it; the
-diagnostics string is rendered from it (`SearchReport.render`), and nothing parses that string.
+predicted depth, seconds, outcome, the ellipse tier that ran it). The campaign, the tests and the
+diagnostics read it; the diagnostics string is rendered from it (`SearchReport.render`), and nothing
+parses that string.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from .tiers import TieredNlp
 from .tracking import BUDGET_EXHAUSTED, SOLVED, NlpBase
 
 #: predicted violations up to this count as none (region g and state units): a plan's own penalty optimum
@@ -52,7 +54,8 @@ class Start:
 
 @dataclass
 class Candidate:
-    """A solver call's outcome: w [n_w] in its NLP's layout, multipliers, how it ended, cost and depth."""
+    """A solver call's outcome: w [n_w] in its NLP's layout, multipliers, how it ended, cost and depth;
+    `tier`: the ellipse capacity of the tier that ran the call (None: not on a tier, or no call)."""
 
     label: str
     nlp: NlpBase
@@ -68,6 +71,7 @@ class Candidate:
     finite: bool
     cost: float = math.nan
     depth: float = math.nan
+    tier: int | None = None
 
     @property
     def clear(self) -> bool:
@@ -96,7 +100,8 @@ class Outcome(StrEnum):
 @dataclass
 class Tried:
     """One line of the report: a start, what its solve gave and what became of it (`outcome`; for a
-    refused one, `refusal`: why `admit` refused it)."""
+    refused one, `refusal`: why `admit` refused it); `tier`: the ellipse capacity of the tier that ran
+    the solver call (core/nlp/tiers.py; None: the start's own NLP, or no call)."""
 
     label: str
     phase: str
@@ -106,6 +111,12 @@ class Tried:
     seconds: float = 0.0
     outcome: Outcome | None = None
     refusal: str = ""
+    tier: int | None = None
+
+    @property
+    def solver_called(self) -> bool:
+        """A solver ran for this start (not skipped for the budget, not refused as a non-finite guess)."""
+        return self.outcome is not Outcome.NOT_TRIED and self.solver_status != NON_FINITE_GUESS
 
 
 #: phases of a sample (SearchReport.phase)
@@ -171,6 +182,7 @@ def solve_start(start: Start, par: np.ndarray, feasibility_tolerance: float) -> 
         # never handed to a solver: FATROP loops without end on a NaN guess (measured)
         return Candidate(start.label, nlp, start.w0, start.lam_x0, start.lam_g0, NON_FINITE_GUESS, 0, 0.0,
                          False, False, False, False)
+    tier = nlp.capacity if isinstance(nlp, TieredNlp) else None  # where TieredNlp.solve runs it
     w, lam_x, lam_g, stats, seconds = nlp.solve(start.w0, par, start.lam_x0, start.lam_g0, cold=start.cold)
     status = str(stats.get("return_status", "unknown"))
     iterations = int(stats.get("iter_count", -1))
@@ -179,7 +191,7 @@ def solve_start(start: Start, par: np.ndarray, feasibility_tolerance: float) -> 
     finite = bool(np.all(np.isfinite(w)))
     usable = finite and (solved or nlp.violation(w, par) <= feasibility_tolerance)
     candidate = Candidate(start.label, nlp, w, lam_x, lam_g, status, iterations, seconds, solved, usable,
-                          budget_cut, finite)
+                          budget_cut, finite, tier=tier)
     if usable:
         candidate.cost = plan_cost(nlp, w, par)
         candidate.depth = nlp.max_depth(w, par)
@@ -212,7 +224,7 @@ def search(starts: Iterable[Start], par: np.ndarray, time_left: float, report: S
         spent += candidate.seconds
         slowest = max(slowest, candidate.seconds)
         line = Tried(candidate.label, phase, candidate.solver_status, candidate.cost, candidate.depth,
-                     candidate.seconds)
+                     candidate.seconds, tier=candidate.tier)
         report.tried.append(line)
         if not candidate.usable:
             line.outcome = Outcome.UNUSABLE

@@ -61,6 +61,11 @@ class TieredNlp:
         return getattr(self.regular, name)
 
     @property
+    def capacity(self) -> int | None:
+        """The ellipse capacity of the tier `solve` runs on now (None: the regular NLP)."""
+        return next((k for k, nlp in self.tiers if nlp is self.tier), None)
+
+    @property
     def solver_builds(self) -> int:
         return sum(nlp.solver_builds for _, nlp in self.tiers)
 

@@ -24,6 +24,11 @@ class RuntimeChanges:
         """The obstacle regions as set (the plan avoids them inflated by `region_margin`)."""
         return self._given
 
+    @property
+    def planned_regions(self) -> tuple[Region, ...]:
+        """The obstacle regions the plan avoids: as set, inflated by `region_margin` and the mismatch margin."""
+        return self._regions
+
     def set_regions(self, regions: Sequence[Region], margin: float | None = None) -> None:
         """Replace the obstacle regions, planned around inflated by `margin` (default region_margin) plus the
         mismatch margin; RegionError if they do not fit the slots, nothing changes then."""
