@@ -1,0 +1,143 @@
+"""Preparation and feedback (core/sample/feedback.py, core/nlp/sensitivity.py): a sample prepared ahead for the
+predicted state answers the state that arrives from its plan and law, no solver call, with the command a
+searched sample would give; where the law does not hold the sample searches as before."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.loop.closed_loop import ContinuousPlant, Plant, drive, make_plant
+from nmpc_avoid_ros.core.problem.regions import Ellipse
+from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import FeedbackOutcome
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def config(name: str) -> ControllerSettings:
+    return ControllerSettings.from_params(load_params_file(ROOT / "config" / f"{name}.yaml").section("controller"))
+
+
+#: the paper's config (IPOPT, multiple shooting, Euler prediction: quick) and the live one (FATROP, stage-wise,
+#: RK4 in 8 sub-steps with the between-sample rows and ellipse tiers: the path users run, slow uncompiled)
+CONFIGS = {"paper": config("van_der_pol"),
+           "live": config("van_der_pol_live").replace(codegen=False, max_solve_time=2.0)}
+#: the plant of each config's loop: the paper's is its own Euler map (its prediction misses the continuous plant by
+#: up to ~0.06 a sample, beyond the law's reach in most samples: they search), the live config's the continuous one
+PLANT = {"paper": "euler", "live": "continuous"}
+BOTH = [pytest.param("paper"), pytest.param("live", marks=pytest.mark.slow)]
+LIVE = CONFIGS["live"]
+
+
+#: a miss of the prediction that keeps the prepared active set, and how much of the command's error the law
+#: removes: the live (stage-wise) problem's to second order (measured 1e-7 left of 3e-3 at 1e-3); the paper's
+#: rides the region with its slacks' bound s >= 0 and rows s >= g nearly both active, which flip at misses of
+#: 3e-4 (those samples search) and leave the first-order correction cruder (measured 8e-6 left of 5e-5)
+MISS = {"paper": 1e-4, "live": 1e-3}
+CORRECTED = {"paper": 0.5, "live": 1e-2}
+#: how far the prepared loop may part from the searched one: the paper's is its own plant (no miss: the law adds
+#: nothing); the live config's searched plans are themselves only as exact as FATROP's acceptable stop (KKT error
+#: 1e-4; measured: 1.5e-5 apart at mu = 0, where the slacks' rows are weakly active)
+SAME_LOOP = {"paper": 1e-6, "live": 1e-4}
+
+
+def controller_of(name: str, feedback: bool, **changes) -> NmpcController:
+    return NmpcController(CONFIGS[name].replace(feedback=feedback, **changes))
+
+
+def live(feedback: bool, **changes) -> NmpcController:
+    return controller_of("live", feedback, **changes)
+
+
+def prepared_controller(name: str = "paper", steps: int = 8, **changes
+                        ) -> tuple[NmpcController, Plant, np.ndarray]:
+    """A controller `steps` samples into the paper's run on the continuous plant, prepared for the next."""
+    controller = controller_of(name, True, **changes)
+    plant = make_plant(PLANT[name], controller.model, controller.settings)
+    x = np.array([-5.0, 0.0])
+    for _ in range(steps):
+        result = controller.step(x, [5.0])
+        x = plant.advance(x, result.u, LIVE.sample_time)
+        controller.prepare()
+    return controller, plant, x
+
+
+@pytest.mark.parametrize("mu", [1e8, 0.0])
+@pytest.mark.parametrize("name", BOTH)
+def test_the_prepared_loop_is_the_searched_loop_without_a_solver_call_in_most_samples(name, mu):
+    runs = {}
+    for feedback in (False, True):
+        controller = controller_of(name, feedback, mu=mu)
+        plant = make_plant(PLANT[name], controller.model, controller.settings)
+        runs[feedback] = drive(controller, plant, [-5.0, 0.0], [5.0], 40, LIVE.sample_time)
+    searched, prepared = runs[False], runs[True]
+    assert np.max(np.abs(prepared.x - searched.x)) < SAME_LOOP[name]  # the same closed loop
+    answered = [r for r in prepared.outcomes if r.feedback is FeedbackOutcome.ANSWERED]
+    assert len(answered) >= 0.8 * len(prepared.outcomes)
+    for result in answered:  # no solver ran in the sample; its preparation did, between the samples
+        assert result.search.phase == "feedback" and not result.search.tried
+        assert 0 < result.feedback_time < result.solve_time and result.preparation_time > 0
+        assert result.iterations == 0 and str(result.status) == "ok"
+    assert all(r.feedback is None and not r.preparation_time for r in searched.outcomes)
+
+
+@pytest.mark.parametrize("name", BOTH)
+def test_the_law_corrects_a_state_off_the_prediction_to_second_order(name):
+    controller, _, x = prepared_controller(name)
+    prepared = controller.prepared
+    assert prepared is not None and prepared.law is not None
+    off = x + MISS[name] * np.array([1.0, -0.5])  # the plant missed the prediction
+    reference = controller_of(name, False)
+    reference.memory = controller.memory.__class__(plan=prepared.plan)  # the same warm start, searched
+    searched = reference.step(off, [5.0])
+    answered = controller.step(off, [5.0])
+    assert answered.feedback is FeedbackOutcome.ANSWERED
+    miss = np.max(np.abs(prepared.plan.inputs[0] - searched.u))
+    assert miss > 1e-5  # the prepared command alone is off, to first order
+    assert np.max(np.abs(answered.u - searched.u)) < CORRECTED[name] * miss
+
+
+def test_a_new_target_or_a_far_state_is_searched():
+    controller, plant, x = prepared_controller()
+    changed = controller.step(x, [4.0])
+    assert changed.feedback is FeedbackOutcome.INPUTS_CHANGED and changed.search.tried
+    x = plant.advance(x, changed.u, LIVE.sample_time)
+    assert controller.prepare() is not None
+    far = controller.step(x + np.array([0.5, -0.3]), [4.0])
+    assert far.feedback in (FeedbackOutcome.INFEASIBLE, FeedbackOutcome.ACTIVE_SET_CHANGED) and far.search.tried
+    assert str(far.status) in ("ok", "unconverged")
+
+
+@pytest.mark.slow
+def test_a_moving_region_is_followed_by_the_law():
+    walker = Ellipse((1.0, 1.8), (0.4, 0.3), 0.0, velocity=(0.05, 0.0), stamp=0.0)
+    controller = live(True, predict_obstacles=True)
+    reference = live(False, predict_obstacles=True)
+    plant = ContinuousPlant(controller.model)
+    x, answered = np.array([-5.0, 0.0]), 0
+    for k in range(12):
+        t = k * LIVE.sample_time
+        regions = [walker] if k == 0 else None
+        result = controller.step(x, [5.0], regions, time=t)
+        check = reference.step(x, [5.0], regions, time=t)
+        answered += result.feedback is FeedbackOutcome.ANSWERED
+        assert np.max(np.abs(result.u - check.u)) < 1e-4  # what a searched sample applies
+        x = plant.advance(x, result.u, LIVE.sample_time)
+        controller.prepare()
+    assert answered >= 8
+
+
+def test_coasting_drops_the_plan_prepared_for_the_sample_it_replaces_and_off_prepares_nothing():
+    controller, _, x = prepared_controller(steps=4)
+    assert controller.prepared is not None
+    controller.coast()
+    assert controller.prepared is None
+    result = controller.step(x, [5.0])  # one sample later than the lost preparation: searched
+    assert result.feedback is None and result.search.tried
+    off = controller_of("paper", False)
+    off.step([-5.0, 0.0], [5.0])
+    assert off.prepare() is None
