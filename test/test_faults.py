@@ -28,6 +28,7 @@ from nmpc_avoid_ros.core.loop.closed_loop import DiscretePlant, run_closed_loop
 from nmpc_avoid_ros.core.problem.models import make_model
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import StepStatus
 from nmpc_avoid_ros.ros.markers import ellipse_marker
 from nmpc_avoid_ros.ros.parameters import STREAM_QOS
 
@@ -331,7 +332,7 @@ def test_state_loss_and_delay_keep_the_loop_stable_and_inside_the_constraint(ros
     assert int(last["missed_samples"]) >= 1 and float(last["max_state_gap_ms"]) >= 1000.0, last
     assert last["stale"] == "0" and last["stale_episodes"] == "0"
     solved = [d for d in listen.diags if "status" in d]
-    fallbacks = sum(d["status"].startswith("fallback") for d in solved)
+    fallbacks = sum(StepStatus(d["status"]).is_fallback for d in solved)
     assert ctrl.stop() == 0 and plant.stop() == 0
     print(f"loss/delay: plant sent {relay.received}, relay dropped {relay.dropped} "
           f"({relay.dropped / relay.received:.0%}), controller received {last['states_received']}; "
@@ -365,7 +366,7 @@ def test_a_starved_solver_still_commands_every_sample_through_the_fallback(ros_g
     # deactivate_command the stop publishes (test_stop_dds; here zero like the starved samples' own)
     assert len(solved()) - 1 <= len(listen.commands) <= len(solved()) + 1, (len(listen.commands), len(solved()))
     assert elapsed <= 10 * 0.5 + 2.0  # ... at the sample rate (0.5 s), not slower
-    assert all(d["status"].startswith("fallback") and d["level"] == 1 for d in window), window
+    assert all(StepStatus(d["status"]).is_fallback and d["level"] == 1 for d in window), window
     assert all(d["budget_exhausted"] == "True" and int(d["iterations"]) <= 1 for d in window), window
     assert all(float(d["solve_time_ms"]) < 500.0 for d in window)  # the budget bounds the solve
     for key in ("samples", "fallbacks"):  # ten consecutive samples, every one a fallback

@@ -7,6 +7,8 @@ diagnostic; once the marker is deleted the loop recovers and settles.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from test_nodes_behaviour import controller_with_probe, lockstep_command
@@ -49,7 +51,8 @@ def test_an_unavoidable_region_gives_a_bounded_violation_and_an_error_then_the_l
     for d in flagged:
         assert d["level"] == ERROR and "region unavoidable" in d["message"], d
         assert float(d["predicted_violation"]) <= 1.0  # bounded: g of this ellipse is at most 1
-        assert "least predicted violation" in d["fallback_reason"]
+        predicted = json.loads(d["fallback_predicted"])  # candidate -> predicted violation: the least is applied
+        assert predicted and float(d["predicted_violation"]) == pytest.approx(min(predicted.values()), rel=1e-2), d
     assert covering.depth(x) <= depth_before + 1e-9  # the violation did not grow
     listen.obstacles.publish(MarkerArray(markers=[delete_marker("bad", 3)]))
     assert listen.spin_until(lambda: "0 obstacle region(s) active" in ctrl.output(), 10) or True

@@ -71,6 +71,7 @@ def test_interrupt_from_another_thread_and_a_stale_wakeup_byte_does_not_abandon_
     # interrupt() and resume() racing can leave a byte in the wakeup pipe with the worker serving:
     # the wait drains it and goes on waiting for the answer
     worker.interrupt()
+    # private: no public call leaves this race's state (a stale wakeup byte with the flag cleared)
     worker._interrupted = False  # what a resume() between interrupt's flag and its write leaves
     controller.reset()
     controller.set_regions([])

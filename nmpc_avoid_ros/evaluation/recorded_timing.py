@@ -77,11 +77,16 @@ class RecordedTiming:
         return [int(math.floor(d / self.period + 1e-9)) if d is not None else s
                 for d, s in zip(self.offsets, self.steps, strict=True)]
 
+    @property
+    def late_commands(self) -> int:
+        """How many commands acted a plant step or more after their state (`late` not 0)."""
+        return sum(1 for n in self.late if n)
+
     def describe(self) -> str:
         steps = self.steps
         between = steps[:-1] or steps  # the last: to the final state
         known = [d for d in self.offsets if d is not None]
-        late = sum(1 for n in self.late if n)
+        late = self.late_commands
         spread = (f"each command acting {min(known) * 1e3:.4g} to {max(known) * 1e3:.4g} ms (median "
                   f"{float(np.median(known)) * 1e3:.4g} ms) after the state its sample solved on" if known else
                   "no command seen acting")

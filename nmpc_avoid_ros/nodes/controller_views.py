@@ -102,6 +102,8 @@ def diagnostic_array(name: str, stamp: Time, level: bytes, message: str, values:
                        # the verdict as data (violated, held, not_checked); `certificate` renders it for people
                        "certificate_verdict": ("violated" if cert.violated else "held") if cert.checked
                        else "not_checked",
+                       # what changed when the check restarted for changed parameters (JSON list)
+                       "certificate_changed": json.dumps(list(cert.changed)),
                        "certificate": (("violated" if cert.violated else "checked") if cert.checked
                                        else f"not checked: {cert.reason}") + f"; V_N of the {cert.cost_source}"})
     status = DiagnosticStatus(level=level, name=f"{name}: nmpc", message=message, hardware_id=name)

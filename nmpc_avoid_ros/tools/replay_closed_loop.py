@@ -173,6 +173,8 @@ def closed_loop_main(args: argparse.Namespace) -> int:
     report = {"bag": str(args.bag), "finished": run.finished, "plant": plant.integration, "plant_model": plant.model,
               "plant_source": plant.source, "settings_source": inputs.settings_source, "notes": notes,
               "timing": None if plant.timing is None else plant.timing.describe(), "timing_used": timing,
+              # the same as data: commands a plant step or more late (None: no recorded timing)
+              "timing_late_commands": None if plant.timing is None else plant.timing.late_commands,
               "latency": latency_used, "bound": REPLAY_BOUND,
               "seconds": seconds, "recorded": recorded, "table": table,
               "runs": [{"label": cf.label, "changes": cf.changes, "metrics": cf.metrics,

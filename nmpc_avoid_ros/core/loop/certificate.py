@@ -63,7 +63,9 @@ class CertificateSample:
     consecutive: violations in a row up to this sample; error_after: the settings'
     certificate_error_after (that many in a row are an ERROR); model_mismatch: max |x(k) - x_pred(k)|
     between the measured state and the previous plan's x(1), the candidate's start (0 for the
-    nominal model up to the solver's constraint tolerance; nan when there was no previous plan).
+    nominal model up to the solver's constraint tolerance; nan when there was no previous plan);
+    changed: what changed when the check restarted for changed parameters ('target', 'regions', 'weights',
+    'obstacle settings'; () otherwise), the data `reason` renders.
     """
 
     value_function: float
@@ -78,6 +80,7 @@ class CertificateSample:
     consecutive: int
     error_after: int = 3
     model_mismatch: float = math.nan
+    changed: tuple[str, ...] = ()
 
     @property
     def margin(self) -> float:
@@ -98,10 +101,10 @@ class CertificateSample:
                 self.model_mismatch]
 
     def as_dict(self) -> dict:
-        """LAYOUT's values (nan -> None, so the JSON is strict), plus reason and cost_source."""
+        """LAYOUT's values (nan -> None, so the JSON is strict), plus reason, changed and cost_source."""
         values = {k: (None if math.isnan(v) else v) for k, v in zip(LAYOUT, self.as_vector())}
         return {**values, "checked": self.checked, "violated": self.violated, "reason": self.reason,
-                "cost_source": self.cost_source, "level": self.level}
+                "changed": list(self.changed), "cost_source": self.cost_source, "level": self.level}
 
 
 #: two poses of a region agree when their numbers do to this (relative and absolute; stamps are float
@@ -133,8 +136,8 @@ def same_trajectory(a: Region, b: Region, time: float | None) -> bool:
     return bool(np.allclose(fa, fb, rtol=POSE_TOLERANCE, atol=POSE_TOLERANCE))
 
 
-def what_changed(previous: tuple, key: tuple, time: float | None, target_size: int) -> str:
-    """'' when Assumption P holds between two samples, else what changed ('target', 'regions', ...).
+def what_changed(previous: tuple, key: tuple, time: float | None, target_size: int) -> tuple[str, ...]:
+    """() when Assumption P holds between two samples, else what changed ('target', 'regions', ...).
 
     key = (parameters but x(0) and the slots: y_t [target_size] first, then the weights; the regions;
     the prediction switch; region_margin; the mismatch margin). Equal regions are `same_trajectory`, in order."""
@@ -147,7 +150,7 @@ def what_changed(previous: tuple, key: tuple, time: float | None, target_size: i
         changes.append("weights")
     if previous[2:] != key[2:]:
         changes.append("obstacle settings")
-    return ", ".join(changes)
+    return tuple(changes)
 
 
 @dataclass
@@ -197,7 +200,7 @@ class StabilityCertificate:
         s = self.controller.settings
         key = (par[n:par.size - self.controller.nlp.slot_layout.size].copy(), self.controller.regions,
                s.predict_obstacles, s.region_margin, self.controller.mismatch_margin)
-        changed = what_changed(self._previous.key, key, time, len(y_t)) if self._previous is not None else ""
+        changed = what_changed(self._previous.key, key, time, len(y_t)) if self._previous is not None else ()
         previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:
             return self._unchecked(value, source, "first sample")
@@ -208,7 +211,8 @@ class StabilityCertificate:
                                    mismatch)
         if changed:
             # the decrease holds under unchanged parameters only: the check restarts from here
-            return self._unchecked(value, source, f"parameters changed ({changed}): check restarted", mismatch)
+            return self._unchecked(value, source, f"parameters changed ({', '.join(changed)}): check restarted",
+                                   mismatch, changed)
         # the previous plan shifted (u(1..N-1), u_a; x(2..N), x_a), started at its own x(1) (the
         # nominal successor) and costed with this sample's parameters (moving regions at this
         # sample's stage times)
@@ -228,10 +232,11 @@ class StabilityCertificate:
         return CertificateSample(value, decrease, bound, tolerance, True, "", violated, source,
                                  self.violations, self.consecutive, s.certificate_error_after, mismatch)
 
-    def _unchecked(self, value: float, source: str, reason: str, mismatch: float = math.nan) -> CertificateSample:
+    def _unchecked(self, value: float, source: str, reason: str, mismatch: float = math.nan,
+                   changed: tuple[str, ...] = ()) -> CertificateSample:
         self.consecutive = 0
         return CertificateSample(value, math.nan, math.nan, math.nan, False, reason, False, source,
-                                 self.violations, self.consecutive, model_mismatch=mismatch)
+                                 self.violations, self.consecutive, model_mismatch=mismatch, changed=changed)
 
     def plan_cost(self, states: np.ndarray, inputs: np.ndarray, y_a: np.ndarray, x_a: np.ndarray,
                   u_a: np.ndarray, par: np.ndarray) -> float:
