@@ -146,7 +146,10 @@ def test_a_weaker_actuator_enters_a_thin_ellipse_unless_the_margin_widens_it(gai
     # local minimum of the kind issue 31 is about), whenever |x2| is planned below 1.999: this test is about
     # the mismatch margin, so it keeps the |x1 x2| rows only (the live loop's box: test_latency, test_send_dds)
     params = {**params, "keep_in": params["keep_in"][:2], "keep_in_margin": 1e-3}
-    settings = ControllerSettings.from_params(params).replace(codegen=False, max_solve_time=2.0, mismatch_gain=gain)
+    # every sample searched: a 20 % weaker actuator misses the prediction by more than the feedback law's reach
+    # in most samples, and the few it answers change this chaotic scene's path (clear without the margin: 0.12)
+    settings = ControllerSettings.from_params(params).replace(codegen=False, max_solve_time=2.0, mismatch_gain=gain,
+                                                              feedback=False)
     controller = NmpcController(settings)
     run = run_closed_loop(controller, [1.0346166655733864, -1.6059259800145278], [-4.655908510752598], 60,
                           StrongerActuator(0.8), regions=lambda k: THIN)

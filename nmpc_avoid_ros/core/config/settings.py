@@ -105,6 +105,12 @@ class ControllerSettings:
                                    "by problem hash")
     cache_dir: str = setting("", "folder of compiled solvers; empty: $NMPC_AVOID_ROS_CACHE, else "
                                  "~/.cache/nmpc_avoid_ros")
+    codegen_background: bool = setting(
+        False, "with codegen, a library missing from the cache (a first start) compiles in a background process while "
+               "the same solvers run interpreted (slower solves, but commands from the first sample, not after a "
+               "compile of up to minutes); each compiled one is swapped in between samples once ready "
+               "(core/nlp/background.py; background.wait_compiled() waits for them). False: the constructor waits for "
+               "the compile (offline tools, benchmarks and tests get the compiled solvers from the first solve)")
     state_weights: tuple[float, ...] = setting((1.0, 1.0), "diagonal of Q in the stage cost |x - x_a|_Q^2 "
                                                            "(n values)", runtime=True, low=0.0)
     input_weights: tuple[float, ...] = setting((1.0,), "diagonal of R in the stage cost |u - u_a|_R^2 (m values)",

@@ -9,7 +9,10 @@ gets its own library, and run-time parameters (target, weights, obstacles) never
 
 A first start compiles (nothing in the cache for this structure): the first compile of a process
 logs once, on the `logging` logger of this module, that it compiles, about how long it takes and
-where the cache is; the nodes pass core's log records on to the ROS log (nodes/runner.py).
+where the cache is; the nodes pass core's log records on to the ROS log (nodes/runner.py). With the
+setting codegen_background: true the compile runs in a background process while interpreted solvers
+serve (`interpreted_while_compiling`, core/nlp/background.py); by default here, before the
+constructor returns.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import hashlib
 import logging
 import os
 import shutil
+import signal
 import subprocess
 import tempfile
 from collections.abc import Callable
@@ -45,13 +49,16 @@ log = logging.getLogger(__name__)
 _announced = False  # the first compile of this process logged
 
 
-def announce_compile(folder: Path) -> None:
-    """Log once per process that a compile starts, about how long it takes and where the cache is."""
+def announce_compile(folder: Path, background: bool = False) -> None:
+    """Log once per process that a compile starts, about how long it takes and where the cache is
+    (`background`: and that interpreted solvers serve until the compiled ones are swapped in)."""
     global _announced
     if _announced:
         return
     _announced = True
-    log.info(f"first start with this problem structure: compiling the solver's generated code, up to about "
+    where = (" in the background while interpreted solvers (the same NLPs, solved slower) serve; each compiled one "
+             "is swapped in between samples once ready" if background else "")
+    log.info(f"first start with this problem structure: compiling the solver's generated code{where}, up to about "
              f"{SECONDS_PER_NLP:.0f} s per NLP (a shipped live config compiles up to {LIVE_CONFIG_NLPS}: about "
              f"{SECONDS_PER_NLP * LIVE_CONFIG_NLPS / 60:.1f} min on 2 cores); cached in {folder}: later starts "
              f"load it at once")
@@ -76,16 +83,13 @@ def structure_hash(plugin: str, nlp: dict) -> str:
     return digest.hexdigest()[:16]
 
 
-def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Function]) -> tuple[Path, bool]:
-    """Path of the compiled oracle library for `key` and whether it came from the cache.
+def library_path(key: str, folder: Path) -> Path:
+    """Where the library of the structure `key` is cached."""
+    return folder / f"nmpc_{key}.so"
 
-    On a miss, `make_solver()` builds the symbolic solver whose oracles are generated and compiled
-    with $CC (default cc) and COMPILE_FLAGS; the library is moved into place atomically, so concurrent
-    processes never load a half-written file.
-    """
-    library = folder / f"nmpc_{key}.so"
-    if library.exists():
-        return library, True
+
+def _prepare(folder: Path) -> str:
+    """The compiler ($CC, default cc), after checking that it exists and that `folder` can be created."""
     compiler = os.environ.get("CC", "cc")
     if shutil.which(compiler) is None:
         raise ConfigError(f"codegen needs a C compiler ({compiler!r} not found): install gcc, set CC, "
@@ -94,6 +98,42 @@ def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Functi
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"cannot create the solver cache folder {folder}: {exc.strerror or exc}") from None
+    return compiler
+
+
+def interpreted_while_compiling(key: str, folder: Path, plugin: str, nlp: dict, opts: dict) -> ca.Function | None:
+    """None when the library of `key` is cached; else the solver of `nlp`, interpreted, while its library
+    compiles in a background process (core/nlp/background.py swaps it in between samples)."""
+    from .background import interpreted_until_compiled
+
+    library = library_path(key, folder)
+    if library.exists():
+        return None
+    _prepare(folder)  # a missing compiler or cache folder is a configuration error now, not in the background
+    announce_compile(folder, background=True)
+    return interpreted_until_compiled(key, library, plugin, nlp, opts)
+
+
+def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Function],
+                     own_group: bool = False) -> tuple[Path, bool]:
+    """Path of the compiled oracle library for `key` and whether it came from the cache.
+
+    On a miss, `make_solver()` builds the symbolic solver whose oracles are generated and compiled
+    with $CC (default cc) and COMPILE_FLAGS; the library is moved into place atomically, so concurrent
+    processes never load a half-written file. A background compile of the same library in this
+    process (core/nlp/background.py) is waited for instead of repeated. `own_group`: the compiler runs
+    in a process group of its own, killed when this call ends by an exception (the background compile
+    process, whose compiler would otherwise outlive it when the process that started it ends).
+    """
+    from .background import pending
+
+    library = library_path(key, folder)
+    job = pending(library)
+    if job is not None:
+        job.done.wait()
+    if library.exists():
+        return library, True
+    compiler = _prepare(folder)
     announce_compile(folder)
     solver = make_solver()
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
@@ -105,9 +145,25 @@ def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Functi
         finally:
             os.chdir(cwd)
         built = Path(tmp) / f"nmpc_{key}.so"
-        result = subprocess.run([compiler, *COMPILE_FLAGS, str(Path(tmp) / source), "-o", str(built)],
-                                capture_output=True, text=True)
-        if result.returncode != 0:
-            raise ConfigError(f"compiling the generated solver failed: {result.stderr.strip()[:500]}")
+        returncode, stderr = _compile(compiler, Path(tmp) / source, built, own_group)
+        if returncode != 0:
+            raise ConfigError(f"compiling the generated solver failed: {stderr.strip()[:500]}")
         os.replace(built, library)
     return library, False
+
+
+def _compile(compiler: str, source: Path, built: Path, own_group: bool) -> tuple[int, str]:
+    """Run the compiler; (exit status, stderr). An exception while it runs (SystemExit from a signal
+    handler, KeyboardInterrupt) kills it, with its group when it has its own (the driver's cc1 too)."""
+    proc = subprocess.Popen([compiler, *COMPILE_FLAGS, str(source), "-o", str(built)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=own_group)
+    try:
+        _, stderr = proc.communicate()
+    finally:
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL) if own_group else proc.kill()
+            except ProcessLookupError:
+                pass
+            proc.wait()
+    return proc.returncode, stderr

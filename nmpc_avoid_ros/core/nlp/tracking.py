@@ -31,6 +31,7 @@ import numpy as np
 from ..config.settings import SOLVERS, ControllerSettings
 from ..errors import ConfigError
 from ..problem.models import Model, make_model
+from . import background
 from .between import between_samples, worst_of
 from .buffered import Buffered
 from .parts import NlpLayout, check_sizes, depth_function, problem_parts
@@ -100,9 +101,12 @@ class NlpBase:
         The call goes through `Function.buffer()` with arrays bound once, so no argument is
         converted or allocated per call (a dict call costs ~0.15 ms more, measured). With a `worker`
         (core/nlp/worker.py) it runs in the worker's child and is abandoned at the worker's deadline.
+        Compiled solvers whose libraries landed since the last call are swapped in before it (the worker
+        does so when a sample begins; core/nlp/background.py).
         """
         if self.worker is not None:
             return self.worker.solve(self, w0, par, lam_x0, lam_g0, cold, self.worker.deadline)
+        background.load_ready()
         return self.solve_here(w0, par, lam_x0, lam_g0, cold)
 
     def solve_here(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False
@@ -120,12 +124,17 @@ class NlpBase:
     def _cold_solver_call(self) -> Buffered:
         return self._buffered(self.cold_solver)
 
-    def _buffered(self, solver: ca.Function) -> Buffered:
-        """The solver with its bounds bound once; called with (x0, p, lam_x0, lam_g0)."""
+    def _buffered(self, solver: ca.Function) -> Buffered | background.SwappableCall:
+        """The solver with its bounds bound once; called with (x0, p, lam_x0, lam_g0). An interpreted
+        solver whose library compiles in the background runs as its compiled twin once that is loaded
+        (core/nlp/background.py)."""
         if list(solver.name_in()) != ["x0", "p", "lbx", "ubx", "lbg", "ubg", "lam_x0", "lam_g0"] or \
                 list(solver.name_out()[:6]) != ["x", "f", "g", "lam_x", "lam_g", "lam_p"]:
             raise ConfigError(f"unexpected solver signature {solver.name_in()} -> {solver.name_out()}")
-        return Buffered(solver, fixed={2: self.lbx, 3: self.ubx, 4: self.lbg, 5: self.ubg}, densify=False)
+        fixed = {2: self.lbx, 3: self.ubx, 4: self.lbg, 5: self.ubg}
+        if background.is_tracked(solver):
+            return background.SwappableCall(solver, lambda f: Buffered(f, fixed=fixed, densify=False))
+        return Buffered(solver, fixed=fixed, densify=False)
 
     #: (x [n], u [m], p, elapsed s) -> region functions g [n_depth], set by the subclass's build
     region_depth: ca.Function
@@ -309,8 +318,11 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
 
     `equality` flags the constraints with lbg == ubg (FATROP needs to know them); `stages` gives
     the stage dimensions nx, nu, ng [N + 1] of a stage-wise problem (HPIPM needs them). With
-    settings.codegen the oracles are generated, compiled and cached (see core/nlp/codegen.py).
-    Returns the solver and {"codegen": bool, "library": path or None, "cache_hit": bool or None}.
+    settings.codegen the oracles are generated, compiled and cached (see core/nlp/codegen.py); with
+    settings.codegen_background a library missing from the cache compiles in the background and the
+    solver is interpreted until it is swapped in (core/nlp/background.py).
+    Returns the solver and {"codegen": bool, "library": path or None, "cache_hit": bool or None,
+    "background": whether the solver is interpreted until its library is compiled}.
     """
     path = settings.solver
     if path not in _PLUGINS:
@@ -352,10 +364,17 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
                      "print_header": False, "print_iteration": False, "print_status": False,
                      "tol_pr": settings.tolerance, "tol_du": max(settings.tolerance, 1e-6)})
     if not settings.codegen:
-        return ca.nlpsol("nmpc", plugin, nlp, opts), {"codegen": False, "library": None, "cache_hit": None}
-    from .codegen import cache_dir, compiled_library, structure_hash
+        return ca.nlpsol("nmpc", plugin, nlp, opts), {"codegen": False, "library": None, "cache_hit": None,
+                                                      "background": False}
+    from .codegen import cache_dir, compiled_library, interpreted_while_compiling, library_path, structure_hash
 
     key = structure_hash(f"{plugin}:{path}", nlp)
-    library, hit = compiled_library(key, cache_dir(settings.cache_dir),
-                                    lambda: ca.nlpsol("nmpc", plugin, nlp, opts))
-    return ca.nlpsol("nmpc", plugin, str(library), opts), {"codegen": True, "library": str(library), "cache_hit": hit}
+    folder = cache_dir(settings.cache_dir)
+    if settings.codegen_background:
+        solver = interpreted_while_compiling(key, folder, plugin, nlp, opts)
+        if solver is not None:
+            return solver, {"codegen": True, "library": str(library_path(key, folder)), "cache_hit": False,
+                            "background": True}
+    library, hit = compiled_library(key, folder, lambda: ca.nlpsol("nmpc", plugin, nlp, opts))
+    return ca.nlpsol("nmpc", plugin, str(library), opts), {"codegen": True, "library": str(library), "cache_hit": hit,
+                                                           "background": False}

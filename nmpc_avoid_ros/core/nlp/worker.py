@@ -24,6 +24,13 @@ call in progress at once and every later call until `resume()`. A node calls it 
 lifecycle transition so that neither waits for the deadline: Python retries a select() that a
 signal interrupted (PEP 475) when the handler returns normally, so the wait also watches a wakeup
 pipe that `interrupt()` writes to. Offline use never calls it.
+
+Compiled solvers swapped in (core/nlp/background.py: a first start serves with interpreted solvers while
+their libraries compile): the child holds copies of the NLPs as they were at its fork, so the first call
+of each sample (a new deadline; every call outside a sample, whose deadline is infinite) first loads the
+libraries that landed (`background.load_ready`) and, when the process's `background.generation` moved
+since the child was forked, stops the child: the call forks a fresh one that runs the compiled solvers.
+A sample's calls thus all run the same solvers; a swap costs the sample one fork and a few ms per library.
 """
 
 from __future__ import annotations
@@ -43,6 +50,8 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 import numpy as np
+
+from . import background
 
 
 class Solvable(Protocol):
@@ -73,10 +82,11 @@ SPIN_SECONDS = 2e-3
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:
-    """Ask Linux to SIGKILL this (child) process when its parent ends; a no-op elsewhere."""
+def die_with_parent(sig: int = signal.SIGKILL) -> None:
+    """Ask Linux to send `sig` to this (child) process when its parent (the thread that forked it) ends;
+    a no-op elsewhere."""
     try:
-        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, sig, 0, 0, 0)
     except (OSError, AttributeError):
         pass
 
@@ -100,8 +110,12 @@ class SolveWorker:
         self._wakeup = list(os.pipe())  # [read, write]: a byte in it wakes the wait (interrupt); -1 once closed
         for fd in self._wakeup:
             os.set_blocking(fd, False)
-        #: children forked so far (the first, then one after each abandoned call)
+        #: children forked so far (the first, then one after each abandoned call or swap of compiled solvers)
         self.forks = 0
+        #: times the child was replaced because compiled solvers were swapped in (core/nlp/background.py)
+        self.swaps = 0
+        self._sample = math.nan  # the deadline of the sample of the last call
+        self._generation = background.generation  # of the solvers the child holds
         #: the deadline (time.perf_counter s) of the calls of the current sample (NmpcController.step sets it)
         self.deadline = math.inf
         weakref.finalize(self, _release, self._child, self._wakeup)  # the child never outlives its worker
@@ -146,6 +160,9 @@ class SolveWorker:
         with self._lock:
             begin = time.perf_counter()
             if deadline - begin > 0 and not self._interrupted:
+                if deadline != self._sample or math.isinf(deadline):  # a sample's first call: swaps go in here
+                    self._sample = deadline
+                    self._swap_compiled()
                 self._ensure_child()
                 n_p = par.size
                 np.copyto(self._inputs[:n_w], w0)
@@ -189,6 +206,15 @@ class SolveWorker:
                 self._drain_wakeup()  # the byte of an interrupt() that a resume() overtook: keep waiting
         return False
 
+    def _swap_compiled(self) -> None:
+        """Load the compiled solvers that landed; stop a child that holds others (the next call forks)."""
+        background.load_ready()
+        if background.generation != self._generation:
+            if self._child.pid:
+                self._child.stop(reap=False)  # reaped by the next fork
+                self.swaps += 1
+            self._generation = background.generation
+
     def _ensure_child(self) -> None:
         if self._child.pid:
             return
@@ -223,7 +249,7 @@ class SolveWorker:
         within them: no wake-up of a sleeping child), then sleeps in select()."""
         try:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
-            _die_with_parent()
+            die_with_parent()
             os.set_blocking(request, False)
             while True:
                 message = _next_request(request)
