@@ -23,6 +23,7 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..errors import InputError
+from ..nlp.buffered import Buffered
 from ..problem.models import Model
 
 
@@ -30,7 +31,9 @@ class LatencyPrediction:
     """Predicts a state forward over a delay under a held input (one CasADi Function, built once)."""
 
     def __init__(self, model: Model, settings: ControllerSettings) -> None:
-        self._flow = model.flow(settings.discretization, settings.integration_steps)
+        # called through Function.buffer(): a plain call's conversions cost more than the RK4 (on the feedback
+        # path, core/sample/feedback.py, every microsecond before the command counts)
+        self._flow = Buffered(model.flow(settings.discretization, settings.integration_steps))
         #: the longest delay predicted over, s: one sample (an older state is the stale-state logic's matter)
         self.max_delay = settings.sample_time
 
@@ -46,10 +49,10 @@ class LatencyPrediction:
     def shift(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """The state [n] dt s after x [n] under u [m] held, backwards for dt < 0 (the model is smooth: a state a
         few milliseconds earlier on the same arc, e.g. a prepared sample expecting a shorter delay)."""
-        return np.asarray(self._flow(x, u, dt), float).ravel() if dt != 0.0 else np.array(x, float)
+        return self._flow(x, u, dt)[0].copy() if dt != 0.0 else np.array(x, float)
 
     def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """The state [n] dt s after x [n] under the input u [m] held (x itself for dt <= 0)."""
         if dt <= 0.0:
             return np.array(x, float)
-        return np.asarray(self._flow(x, u, dt), float).ravel()
+        return self._flow(x, u, dt)[0].copy()
