@@ -152,23 +152,47 @@ def markdown(records: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def dds_latency(samples: int, progress: Callable[[str], None]) -> dict[str, Any]:
+    """State published -> command received through DDS (bench/node.py's probe, lockstep: the controller answers
+    each state as it arrives) with the live config, searched and prepared, from the user's solver cache. The
+    probe waits 0.3 s after each command (the preparation runs then, as it would within a 0.5 s sample)."""
+    from .node import measure_node
+
+    config = default_config_path().parent / "van_der_pol_live.yaml"
+    out = {}
+    for feedback in ("false", "true"):
+        out["prepared" if feedback == "true" else "searched"] = measure_node(
+            samples, progress, config=config, parameters={"lockstep": "true", "target": "[5.0]", "feedback": feedback},
+            starts=("warm",), pause=0.3)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="bench.feedback", description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, required=True, help="write the records here")
     ap.add_argument("--markdown", type=Path, help="also write the table here")
     ap.add_argument("--scenarios", help="comma-separated name prefixes (default: all)")
+    ap.add_argument("--node-samples", type=int, default=200,
+                    help="samples of the DDS measurement per variant (0: skip it)")
     args = ap.parse_args(argv)
     chosen = [s for s in SCENARIOS if not args.scenarios or any(s[0].startswith(p)
                                                                  for p in args.scenarios.split(","))]
     records: list[dict[str, Any]] = []
     for scenario in chosen:
         records += run(scenario, lambda line: print(line, file=sys.stderr, flush=True))
-    report = {"machine": machine(), "records": records}
+    report: dict[str, Any] = {"machine": machine(), "records": records}
+    if args.node_samples:
+        report["dds"] = dds_latency(args.node_samples, lambda line: print(line, file=sys.stderr, flush=True))
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=1))
     if args.markdown:
         args.markdown.write_text(markdown(records))
     print(markdown(records))
+    for variant, node in report.get("dds", {}).items():
+        r = node["round_trip_ms"]
+        print(f"DDS {variant}: state published -> command received median {r['median']:.3f} ms, p90 {r['p90']:.3f}, "
+              f"p99 {r['p99']:.3f}, max {r['max']:.3f} ({r['count']} samples); in the node "
+              f"{node['step_latency_ms'].get('median', float('nan')):.3f} ms median")
     return 0
 
 

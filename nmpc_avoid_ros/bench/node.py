@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.config.settings import default_config_path
+from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ..core.problem.models import make_model
 from ..tools.processes import NodeProcess, isolated_env
 
@@ -47,8 +47,14 @@ def _stats(values: list[float]) -> dict[str, float]:
 
 
 def measure_node(samples: int = 300, progress: Callable[[str], None] = print, domain: int | None = None,
-                 timeout: float = 120.0) -> dict[str, Any]:
-    """Start the controller twice (cold, warm cache); returns latency and start-up statistics."""
+                 timeout: float = 120.0, config: Path | None = None, parameters: dict[str, str] | None = None,
+                 starts: tuple[str, ...] = ("cold", "warm"), pause: float = 0.0) -> dict[str, Any]:
+    """Start the controller (cold, then warm cache); returns latency and start-up statistics of the last start.
+
+    config: the params file (default: the paper's); parameters: node parameters over it (default
+    NODE_PARAMETERS); starts: "cold" uses an empty cache folder, "warm" the one the cold start left (or, alone,
+    the user's cache: its libraries already compiled); pause: s the probe waits after each command before it
+    publishes the next state (a controller that prepares the next sample after its command needs that time)."""
     domain = domain if domain is not None else 150 + os.getpid() % 60
     os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     with tempfile.TemporaryDirectory(prefix="nmpc_bench_") as tmp:
@@ -62,14 +68,16 @@ def measure_node(samples: int = 300, progress: Callable[[str], None] = print, do
         try:
             probe = _PlantProbe(context)
             runs = {}
-            for label in ("cold", "warm"):
-                runs[label] = _one_start(probe, label, cache, domain, tmp_path, samples if label == "warm" else 20,
-                                         timeout, progress)
+            user_cache = starts == ("warm",)
+            for label in starts:
+                runs[label] = _one_start(probe, label, None if user_cache else cache, domain, tmp_path,
+                                         samples if label == starts[-1] else 20, timeout, progress,
+                                         config or default_config_path(), parameters or NODE_PARAMETERS, pause)
         finally:
             probe.close()
             rclpy.try_shutdown(context=context)
-    warm = runs["warm"]
-    return {"parameters": NODE_PARAMETERS, "startup_s": {k: v["startup_s"] for k, v in runs.items()},
+    warm = runs[starts[-1]]
+    return {"parameters": parameters or NODE_PARAMETERS, "startup_s": {k: v["startup_s"] for k, v in runs.items()},
             "build_s": {k: v["build_s"] for k, v in runs.items()},
             "ready_s": {k: v["ready_s"] for k, v in runs.items()},
             "step_latency_ms": _stats(warm["step_latency_ms"]), "round_trip_ms": _stats(warm["round_trip_ms"]),
@@ -122,15 +130,18 @@ class _PlantProbe:
         self.node.destroy_node()
 
 
-def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Path, samples: int,
-               timeout: float, progress: Callable[[str], None]) -> dict[str, Any]:
+def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, tmp: Path, samples: int,
+               timeout: float, progress: Callable[[str], None], config: Path, parameters: dict[str, str],
+               pause: float) -> dict[str, Any]:
     """Start the node, time its first command, then run `samples` lockstep samples."""
-    config = default_config_path()
-    args = ["--ros-args", "--params-file", str(config), "-p", f"cache_dir:={cache}"]
-    for key, value in NODE_PARAMETERS.items():
+    args = ["--ros-args", "--params-file", str(config)] + ([] if cache is None else ["-p", f"cache_dir:={cache}"])
+    for key, value in parameters.items():
         args += ["-p", f"{key}:={value}"]
-    model = make_model("van_der_pol")
-    step = model.discrete(0.5, "euler")
+    # the plant: the config's own prediction model, so that the controller's prediction holds
+    settings = ControllerSettings.from_params({**load_params_file(config).section("controller"), **{
+        k: v for k, v in parameters.items() if k in ("model", "discretization", "integration_steps")}})
+    model = make_model(settings.model)
+    step = model.discrete(settings.sample_time, settings.discretization, settings.integration_steps)
     x = np.array([-5.0, 0.0])
     started = time.perf_counter()
     spawned = time.time()
@@ -167,6 +178,8 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Pa
             received, u = probe.commands[-1]
             round_trips.append((received - sent) * 1e3)
             x = np.asarray(step(x, u)).ravel()
+            if pause > 0:
+                _idle(probe, pause)
         probe.executor.spin_once(timeout_sec=0.2)
         latencies = list(probe.latencies[-len(round_trips):]) if round_trips else []
         return {"startup_s": round(first, 3), "build_s": build_s,
@@ -176,6 +189,13 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path, domain: int, tmp: Pa
     finally:
         proc.stop()
         _drain(probe, 0.5)  # nothing of this node may count for the next start
+
+
+def _idle(probe: _PlantProbe, seconds: float) -> None:
+    """Spin for `seconds`, keeping what arrives."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        probe.executor.spin_once(timeout_sec=0.01)
 
 
 def _drain(probe: _PlantProbe, seconds: float) -> None:
