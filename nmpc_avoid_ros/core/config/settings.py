@@ -137,6 +137,11 @@ class ControllerSettings:
         0.0, "IPOPT and FATROP stop at an acceptable point: a KKT error below this for ACCEPTABLE_ITERATIONS "
              "iterations in a row (their acceptable_tol / tol_acceptable); 0: off. A solver option, fixed at "
              "construction (docs/design.md, 'Acceptable points')", low=0.0)
+    feedback: bool = setting(
+        False, "answer a sample from the plan prepared for it: a caller that calls prepare() after each command gets "
+               "the next sample's problem solved ahead for the predicted state, and the command from its first-order "
+               "feedback law when the state arrives, no solver call (core/sample/feedback.py); the sample searches as "
+               "before where the law does not hold. False: every sample searches")
     feasibility_tolerance: float = setting(1e-6, "a budget-cut iterate is applied only if its constraint violation "
                                                  "is below this", runtime=True, low=0.0, low_open=True)
     region_margin: float = setting(

@@ -69,6 +69,8 @@ class NlpBase:
     lbg: np.ndarray
     ubg: np.ndarray
     _slack_index: np.ndarray
+    #: the symbolic problem {"x": w, "p": par, "f": cost, "g": g} the solver was built from (core/nlp/sensitivity.py)
+    problem: dict
 
     def parameters(self, x0: np.ndarray, y_t: np.ndarray, slots: np.ndarray, *, kappa: float, mu: float,
                    state_weights: np.ndarray, input_weights: np.ndarray, keep_in_active: np.ndarray) -> np.ndarray:
@@ -289,6 +291,7 @@ class TrackingNlp(NlpBase):
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
 
         nlp = {"x": w, "p": par, "f": cost, "g": ca.vertcat(*g)}
+        self.problem = nlp
         self.solver, self.solver_info = self._make_solver(nlp, s)
         self.terms = Buffered(ca.Function("terms", [w, par], [v_offset, v_avoid, tracking]))
         self.steady = Buffered(ca.Function("steady", [w], [x_a, u_a]))
