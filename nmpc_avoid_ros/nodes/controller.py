@@ -70,6 +70,7 @@ from ..ros.parameters import (
 )
 from ..ros.qos import LatchedSubscription
 from .command_timing import CommandTiming
+from .controller_goal import GoalKeeping
 from .controller_inputs import InputLedger, JudgedInputs
 from .controller_io import INTERFACES
 from .controller_threads import AlwaysAnswers, locked, move_to_group, transition
@@ -84,7 +85,7 @@ SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FA
 SOURCE_STAMP_SKEW = 0.5
 
 
-class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
+class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
     """Thin managed node: converts messages, calls the core controller, publishes.
 
     The solver is built once, in `on_configure`; sample callbacks only convert, solve and publish.
@@ -98,8 +99,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.controller: NmpcController | None = None  # built in on_configure, released in on_cleanup
         self.active = False
-        self.timer = None
-        self.state_subscription = None
+        self.timer = self.state_subscription = None
         self.configure_error = ""
         if self.options.autostart:
             if self.trigger_configure() != SUCCESS:
@@ -395,7 +395,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
             self.publish_certificate(self.certificate.skip("no new state"))
             if result is not None:
                 self.last_result = result
-                self.send_command(result.u, result.inputs[1:])
+                self.send_command(*self.goal_command(result))  # zeros while the goal holds
                 self.publish_diagnostics(DiagnosticStatus.WARN, "no new state: next input of the last plan",
                                          result, 0.0)
                 return
@@ -423,7 +423,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
         self.state_solved, self.fresh_state, self.last_result = True, False, result
         answered = result.feedback is FeedbackOutcome.ANSWERED
         waited = 0.0 if answered else self.timing.hold_until(started, hold)  # the instant the plan was predicted for
-        self.send_command(result.u, None if self.lockstep else result.inputs[1:])  # the late cover's inputs
+        self.send_command(*self.goal_command(result))  # the late cover's inputs; zeros while the goal holds
         latency = time.perf_counter() - started
         self.timing.record(latency, waited, hold, 0.0 if answered else self.cover_hold, answered)
         if compensate:
@@ -454,7 +454,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
             if level != DiagnosticStatus.ERROR:
                 level = DiagnosticStatus.ERROR if certificate.level == "error" else DiagnosticStatus.WARN
             self.get_logger().warning(f"{result.status}; {note}", throttle_duration_sec=self.options.log_throttle)
-        self.publish_diagnostics(level, message, result, latency)
+        self.publish_diagnostics(*self.goal_note(level, message), result, latency)
         self.controller.prepare(quick)  # the next sample solved ahead, after everything of this one went out
 
     def publish_safe(self, why: str) -> None:
@@ -487,7 +487,7 @@ class ControllerNode(JudgedInputs, AlwaysAnswers, LifecycleNode):
                   "mismatch_error": f"{self.controller.memory.mismatch.last_error:.6g}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
                   "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected,
-                  **self.ledger.values(),
+                  **self.ledger.values(), **self.goal_values(),
                   **({"state_depth": f"{a.state_depth:.6g}", "plan_depth": f"{a.plan_depth:.6g}"}
                      if (a := self.last_alarm) else {})}
         msg = diagnostic_array(self.get_fully_qualified_name(), self.get_clock().now().to_msg(), level, message,

@@ -1,6 +1,7 @@
 """The controller's outputs for people and tools (config/nmpc_avoid_ros.rviz, config/foxglove_layout.json):
 `~/prediction` (Path), `~/regions` (MarkerArray), `~/steady_state` and `~/target_marker` (Marker),
-`~/stats` (Float64MultiArray) and `~/certificate` (Float64MultiArray); the /diagnostics message."""
+`~/stats` (Float64MultiArray) and `~/certificate` (Float64MultiArray), the latched `~/goal_reached` (std_msgs/Bool,
+transient local; nodes/controller_goal.py); the /diagnostics message."""
 
 from __future__ import annotations
 
@@ -11,14 +12,14 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Path
 from rclpy.node import Node
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.config.settings import ControllerSettings
 from ..core.errors import RegionError
 from ..core.loop.certificate import LAYOUT, CertificateSample
 from ..core.sample.step_result import StepResult
-from ..ros.parameters import STREAM_QOS
+from ..ros.parameters import LATCHED_QOS, STREAM_QOS
 from ..ros.visualization import prediction_path, regions_markers, stats_array, steady_state_marker, target_marker
 from .controller_io import ArrayInterface, RobotInterface
 
@@ -35,6 +36,8 @@ class ControllerViews:
         self.stats = node.create_publisher(Float64MultiArray, "~/stats", STREAM_QOS)
         self.certificate = node.create_publisher(Float64MultiArray, "~/certificate", STREAM_QOS)
         self.certificate_layout = [MultiArrayDimension(label=",".join(LAYOUT), size=len(LAYOUT), stride=len(LAYOUT))]
+        self.goal_reached = node.create_publisher(Bool, "~/goal_reached", LATCHED_QOS)
+        self.publish_goal_reached(False)  # a late joiner hears where things stand
 
     def publish(self, result: StepResult, settings: ControllerSettings, regions: tuple, state_time: float,
                 target: np.ndarray | None) -> None:
@@ -64,8 +67,12 @@ class ControllerViews:
         msg.layout.dim = self.certificate_layout
         self.certificate.publish(msg)
 
+    def publish_goal_reached(self, reached: bool) -> None:
+        self.goal_reached.publish(Bool(data=bool(reached)))
+
     def destroy(self) -> None:
-        for publisher in (self.prediction, self.regions, self.steady_state, self.target, self.stats, self.certificate):
+        for publisher in (self.prediction, self.regions, self.steady_state, self.target, self.stats, self.certificate,
+                          self.goal_reached):
             self.node.destroy_publisher(publisher)
 
 

@@ -292,6 +292,17 @@ class NodeSettings:
              "input_delay, a controller setting that offline loops use too", runtime=True, low=0.0, high=1.0)
     deactivate_command: str = setting("zero", "the one command published when an active controller is "
                                               "deactivated or shut down", runtime=True, choices=STALE_BEHAVIORS)
+    goal_tolerance: float = setting(
+        0.0, "goal reached: the output within this distance of the target (output units; m for a robot) at rest "
+             "(goal_rest_speed): the command is zero and ~/goal_reached (std_msgs/Bool, transient local) true until "
+             "the output leaves it by goal_hysteresis more or a new target arrives (nodes/controller_goal.py); 0: off",
+        runtime=True, low=0.0)
+    goal_hysteresis: float = setting(0.1, "a reached goal resumes control when the output is further than "
+                                          "goal_tolerance + this from it (output units)", runtime=True, low=0.0)
+    goal_rest_speed: float = setting(
+        0.02, "goal reached only at rest: every rate of the state under the zero command, |f(x, 0)|, at most this "
+              "(state units per s; a unicycle always is at rest, a double integrator below this speed)",
+        runtime=True, low=0.0)
 
     def __post_init__(self) -> None:
         normalise(self)

@@ -7,6 +7,7 @@ plant simulator integrates the continuous dynamics accurately under zero-order h
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -34,6 +35,13 @@ class Model:
         default_plane: the two state indices that obstacle markers in the `state` frame map to.
         steady_guess: optional numeric (y_s[p], x[n]) -> (x_s[n], u_s[m]), a steady state near the
             measured x for the first initial guess of a model without closed-form maps.
+        turn_guess: optional numeric (x[n], y_t[p], horizon, sample_time, input_min[m], input_max[m],
+            behind_only) -> (x(1..N) [N, n], u(0..N-1) [N, m]) or None: for a model that moves only along its
+            heading and cannot reverse (input bounds), a plan that turns on the spot towards the target, then
+            drives; None where it does not apply (reversing allowed, the target near or, `behind_only`, ahead).
+            The initial guess of a cold start, and of a start at rest with the target behind
+            (core/sample/warm_start.py): from rest no small change of the plan approaches a target behind
+            such a model (turning alone does not move its output), so the solver would stay put.
     """
 
     name: str
@@ -45,6 +53,7 @@ class Model:
     steady_state: Callable[[ca.MX | ca.SX], tuple[ca.MX | ca.SX, ca.MX | ca.SX]] | None = None
     default_plane: tuple[int, int] = (0, 1)
     steady_guess: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+    turn_guess: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None
 
     @property
     def n(self) -> int:
@@ -189,7 +198,47 @@ def unicycle() -> Model:
         return np.array([y[0], y[1], x[2]], float), np.zeros(2)
 
     return Model("unicycle", ("x", "y", "theta"), ("v", "omega"), ("px", "py"), dyn, hout, None, (0, 1),
-                 steady_guess=near_rest)
+                 steady_guess=near_rest, turn_guess=unicycle_turn_guess)
+
+
+#: m: a target nearer than this is not turned towards (parked a little past a goal, the robot stays put)
+TURN_GUESS_DISTANCE = 0.05
+
+
+def unicycle_turn_guess(x: np.ndarray, y_t: np.ndarray, horizon: int, sample_time: float, input_min: np.ndarray,
+                        input_max: np.ndarray, behind_only: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
+    """A forward-only unicycle's plan to a target behind it: turn on the spot towards y_t (to the left when
+    exactly behind, as fast as omega's bounds allow), then drive straight at up to v's bound and stop there
+    (Model.turn_guess). None when it can reverse (v's lower bound < 0), the target is nearer than
+    TURN_GUESS_DISTANCE or, with `behind_only`, within 90 degrees of the heading (driving ahead approaches it)."""
+    x, y_t = np.asarray(x, float), np.asarray(y_t, float)
+    v_max, (w_lo, w_hi) = float(input_max[0]), (float(input_min[1]), float(input_max[1]))
+    if input_min[0] < 0 or v_max <= 0:
+        return None
+    offset = y_t[:2] - x[:2]
+    distance = float(np.hypot(*offset))
+    turn = math.remainder(math.atan2(offset[1], offset[0]) - x[2], 2 * math.pi)  # (-pi, pi]
+    if distance < TURN_GUESS_DISTANCE or (behind_only and abs(turn) <= math.pi / 2):
+        return None
+    rate = w_hi if turn >= 0 else -w_lo  # the fastest turn that way
+    if rate <= 0 and abs(turn) > 1e-9:
+        return None
+    px, py, theta = x[:3]
+    heading = theta + turn
+    states, inputs = np.empty((horizon, 3)), np.zeros((horizon, 2))
+    for k in range(horizon):
+        left = heading - theta
+        if abs(left) > 1e-9:  # turning on the spot
+            omega = math.copysign(min(rate, abs(left) / sample_time), left)
+            inputs[k, 1] = omega
+            theta += omega * sample_time
+        else:
+            remaining = math.hypot(y_t[0] - px, y_t[1] - py)
+            v = min(v_max, remaining / sample_time)
+            inputs[k, 0] = v
+            px, py = px + v * sample_time * math.cos(theta), py + v * sample_time * math.sin(theta)
+        states[k] = px, py, theta
+    return states, inputs
 
 
 MODELS: dict[str, Callable[[], Model]] = {

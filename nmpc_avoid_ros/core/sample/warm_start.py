@@ -1,4 +1,5 @@
-"""The initial guess of a sample's regular solve: the budget-cut iterate, the shifted plan, or a straight line.
+"""The initial guess of a sample's regular solve: the budget-cut iterate, the shifted plan, or a straight line
+(for a forward-only model at rest with its target behind it: the model's turn, `turn_start`).
 
 Kept apart from the controller (core/sample/controller.py) because it is pure bookkeeping on the NLP's
 layout: no solver is called here.
@@ -24,9 +25,16 @@ def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | Non
     - else the shifted `plan` (u(1..N-1), u_a; x(2..N), x_a), its multipliers shifted with it when
       `keep_duals` (the plan was made by `nlp`; another NLP's multipliers do not fit: zeros);
     - else a straight line from x to the steady state of y_t, clipped into the bounds.
+
+    A forward-only model's turn towards y_t (Model.turn_guess, `turn_start`) replaces the straight line, and
+    a resting plan where y_t lies behind it.
     """
     layout = nlp.layout
     N = layout.horizon
+    if pending is None and (plan is None or plan_rests(plan)):
+        turn = turn_start(nlp, x, y_t, settings, model, behind_only=plan is not None)
+        if turn is not None:
+            return turn
     if pending is not None:
         w, lam_x, lam_g = pending
         U, X, y_a, rest = layout.split_w(w)
@@ -48,6 +56,43 @@ def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | Non
         return w0, np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
     lam_x, lam_g = nlp.shift_duals(plan.lam_x, plan.lam_g, shift)
     return w0, lam_x, lam_g
+
+
+#: a plan whose remaining inputs and states are this close to its steady state (inf-norm) rests
+REST_TOLERANCE = 1e-3
+
+
+def plan_rests(plan: Plan) -> bool:
+    """Whether the plan's shifted rest (inputs u(age+1..), states x(age+2..)) is its steady state (x_a, u_a)."""
+    shift = plan.age + 1
+    inputs, states = plan.inputs[shift:], plan.states[1 + shift:]
+    return bool(np.all(np.abs(inputs - plan.u_a) <= REST_TOLERANCE) and
+                np.all(np.abs(states - plan.x_a) <= REST_TOLERANCE))
+
+
+def turn_start(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, settings: ControllerSettings, model: Model,
+               behind_only: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The model's turn towards y_t [p] from x [n] as (w, zero multipliers), or None where it has none
+    (with `behind_only`, also where y_t is not behind it).
+
+    A unicycle that may not reverse (v >= 0) and rests with its target behind it is at a local minimum:
+    at v = 0 turning does not move its output and driving ahead moves it away, so a solver started from
+    rest (or the straight line, which runs backwards) stays there (measured: the goal 3 m straight behind,
+    v = omega = 0 for ever). Started from the turn it turns, then drives. Without a plan (a cold start) the
+    turn replaces the straight line for a target ahead too: the straight line runs sideways, which such a
+    model cannot, and IPOPT stopped on it (Error_In_Step_Computation on the two-ellipse scene with v >= 0)."""
+    if model.turn_guess is None:
+        return None
+    layout = nlp.layout
+    turn = model.turn_guess(x, y_t, layout.horizon, settings.sample_time, np.asarray(settings.input_min, float),
+                            np.asarray(settings.input_max, float), behind_only)
+    if turn is None:
+        return None
+    states, inputs = turn
+    x_a, u_a = steady_of(model, np.asarray(model.output(states[-1], np.zeros(model.m))).ravel(), states[-1])
+    y_a = np.asarray(model.output(x_a, u_a)).ravel()
+    rest = None if layout.closed_form else np.concatenate([x_a, u_a])
+    return layout.join_w(inputs, states, y_a, rest, x0=x), np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
 
 
 def straight_line(x: np.ndarray, y_t: np.ndarray, horizon: int, settings: ControllerSettings, model: Model
