@@ -53,14 +53,17 @@ def live(feedback: bool, **changes) -> NmpcController:
     return controller_of("live", feedback, **changes)
 
 
-def prepared_controller(name: str = "paper", steps: int = 8, **changes
+def prepared_controller(name: str = "paper", steps: int = 8, beside: NmpcController | None = None, **changes
                         ) -> tuple[NmpcController, Plant, np.ndarray]:
-    """A controller `steps` samples into the paper's run on the continuous plant, prepared for the next."""
+    """A controller `steps` samples into the paper's run on its config's plant, prepared for the next (`beside`,
+    another controller, steps on the same states)."""
     controller = controller_of(name, True, **changes)
     plant = make_plant(PLANT[name], controller.model, controller.settings)
     x = np.array([-5.0, 0.0])
     for _ in range(steps):
         result = controller.step(x, [5.0])
+        if beside is not None:
+            beside.step(x, [5.0])
         x = plant.advance(x, result.u, LIVE.sample_time)
         controller.prepare()
     return controller, plant, x
@@ -87,12 +90,11 @@ def test_the_prepared_loop_is_the_searched_loop_without_a_solver_call_in_most_sa
 
 @pytest.mark.parametrize("name", BOTH)
 def test_the_law_corrects_a_state_off_the_prediction_to_second_order(name):
-    controller, _, x = prepared_controller(name)
+    reference = controller_of(name, False)  # searches every sample, on the same states
+    controller, _, x = prepared_controller(name, beside=reference)
     prepared = controller.prepared
     assert prepared is not None and prepared.law is not None
     off = x + MISS[name] * np.array([1.0, -0.5])  # the plant missed the prediction
-    reference = controller_of(name, False)
-    reference.memory = controller.memory.__class__(plan=prepared.plan)  # the same warm start, searched
     searched = reference.step(off, [5.0])
     answered = controller.step(off, [5.0])
     assert answered.feedback is FeedbackOutcome.ANSWERED

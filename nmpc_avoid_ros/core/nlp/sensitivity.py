@@ -27,7 +27,7 @@ the new parameters. Elsewhere it answers None and the sample searches as before.
 from __future__ import annotations
 
 import time as clock
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
@@ -164,6 +164,7 @@ class FeedbackLaw:
     multiplier: np.ndarray
     multiplier_change: np.ndarray
     seconds: float = 0.0
+    _cached: tuple[bytes, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
     def change(self, par: np.ndarray) -> np.ndarray | None:
         """The change of the followed parameters to `par` [n_p] (None: another parameter changed too, e.g.
@@ -179,8 +180,17 @@ class FeedbackLaw:
         """The plan w + dw [n_w] for the change dp of the followed parameters, or None where an active
         constraint would leave the active set (its multiplier crosses zero)."""
         moved = np.flatnonzero(dp)
+        change, dw = self._columns(moved)
         step = dp[moved]
-        if self.multiplier.size and np.any(self.multiplier + self.multiplier_change[:, moved] @ step
-                                           < -MULTIPLIER_TOLERANCE):
+        if self.multiplier.size and np.any(self.multiplier + change @ step < -MULTIPLIER_TOLERANCE):
             return None
-        return self.w + self.dw[:, moved] @ step
+        return self.w + dw @ step
+
+    def _columns(self, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The columns of multiplier_change and dw of the parameters that moved, kept for the next call with the
+        same ones (usually x(0) alone: a fancy-indexed copy per call costs more than the product)."""
+        key = moved.tobytes()
+        if self._cached is None or self._cached[0] != key:
+            self._cached = (key, np.ascontiguousarray(self.multiplier_change[:, moved]),
+                            np.ascontiguousarray(self.dw[:, moved]))
+        return self._cached[1], self._cached[2]

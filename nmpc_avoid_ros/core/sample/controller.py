@@ -28,6 +28,7 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..errors import InputError
+from ..nlp.codegen import cache_dir
 from ..nlp.projection import TargetProjection
 from ..nlp.search import SearchReport
 from ..nlp.stagewise import COLD_START_ITERATIONS, make_nlp
@@ -85,6 +86,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         self._slots = np.zeros(self.nlp.slot_layout.size)
         self._keep_in_active = np.ones(self.nlp.layout.n_keep_in)
         self.memory = SampleMemory()
+        self._domain: tuple[ControllerSettings, np.ndarray, np.ndarray] | None = None  # in_solve_domain's box
         #: the mismatch margin (core/sample/mismatch.py) the regions are packed with
         self.mismatch_margin = 0.0
         #: the state predicted over the loop's latency (core/sample/latency.py), also the mismatch's reference
@@ -98,7 +100,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         self.passage = Passage(long_nlp, self.nlp, self.model, self.settings)
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
         #: the feedback laws of prepared plans (core/sample/feedback.py), with the `feedback` setting
-        self.feedback_laws = FeedbackLaws([nlp for nlp in (self.nlp, long_nlp) if nlp is not None]) \
+        self.feedback_laws = FeedbackLaws([nlp for nlp in (self.nlp, long_nlp) if nlp is not None],
+                                          cache_dir(self.settings.cache_dir) if self.settings.codegen else None) \
             if self.settings.feedback else None
         # the regular NLP solved on the smallest ellipse tier that holds the regions (core/nlp/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
@@ -141,11 +144,15 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
     def in_solve_domain(self, x: np.ndarray) -> bool:
         """Whether the state x [n] lies within `solve_domain_margin` box widths of the state box (each
         bounded coordinate): only such states are handed to a solver (docs/design.md, 'A hard time bound')."""
-        lo, hi = np.asarray(self.settings.state_min, float), np.asarray(self.settings.state_max, float)
-        with np.errstate(invalid="ignore"):  # inf - inf on an unbounded coordinate: no limit there
-            span = self.settings.solve_domain_margin * np.where(np.isfinite(hi - lo), hi - lo, 0.0)
-            inside = ((x >= lo - span) | ~np.isfinite(lo)) & ((x <= hi + span) | ~np.isfinite(hi))
-        return bool(np.all(inside))
+        settings = self.settings
+        if self._domain is None or self._domain[0] is not settings:  # recomputed when the settings change
+            lo, hi = np.asarray(settings.state_min, float), np.asarray(settings.state_max, float)
+            with np.errstate(invalid="ignore"):  # inf - inf on an unbounded coordinate: no limit there
+                span = settings.solve_domain_margin * np.where(np.isfinite(hi - lo), hi - lo, 0.0)
+                self._domain = (settings, np.where(np.isfinite(lo), lo - span, -np.inf),
+                                np.where(np.isfinite(hi), hi + span, np.inf))
+        _, low, high = self._domain
+        return bool(np.all((x >= low) & (x <= high)))
 
     def sample_budget(self) -> float:
         """The next step's time bound, s: max_solve_time, or for a cold start (no plan yet, or a re-seed

@@ -21,17 +21,18 @@ config: commands within 1e-10 of a full solve at the same state; docs/design.md)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
 from ..nlp.buffered import Buffered
+from ..nlp.codegen import compiled_function
 from ..nlp.search import VIOLATION_TOLERANCE
 from ..nlp.sensitivity import FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
 from .status import FeedbackOutcome
 from .step_result import Plan
-
 
 #: the largest constraint violation of a moved plan (state and region-function units): its gaps are second
 #: order in the state's distance from the predicted one (1e-5 for a 2e-3 miss on the paper's plant), far
@@ -59,14 +60,17 @@ class FeedbackLaws:
     """The KKT sensitivity of each NLP a plan is kept in (the regular and the passage NLP), and each one's
     feasibility test of a moved plan; all built in the constructor (core/nlp/sensitivity.py)."""
 
-    def __init__(self, nlps: list[NlpBase]) -> None:
+    def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None) -> None:
+        """`compiled_in`: the feasibility tests are compiled and cached there (core/nlp/codegen.py); None: not."""
         self._sensitivity: dict[int, KktSensitivity] = {}
         self._violation: dict[int, Buffered] = {}
         for nlp in nlps:
             n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
             followed = np.concatenate([np.arange(n), np.arange(count - size, count)])  # x(0) and the slots
             self._sensitivity[id(nlp)] = KktSensitivity(nlp.problem, followed)
-            self._violation[id(nlp)] = Buffered(_violation_function(nlp))
+            violation = _violation_function(nlp)
+            self._violation[id(nlp)] = Buffered(violation if compiled_in is None else
+                                                compiled_function(violation, compiled_in))
 
     def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
         """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none."""
