@@ -118,3 +118,18 @@ def test_every_step_returns_within_its_budget(controller, data, warm_steps, regi
     assert np.all(np.isfinite(result.u))
     lo, hi = controller.settings.input_min, controller.settings.input_max
     assert np.all(result.u >= np.asarray(lo) - 1e-9) and np.all(result.u <= np.asarray(hi) + 1e-9)
+
+
+def test_the_target_projection_ends_by_the_samples_deadline_and_is_solved_again_then():
+    """Every solver call of a sample ends by its one deadline: a projection whose deadline has passed answers the
+    target itself at once and is not kept; the next call, with time, projects it (core/nlp/projection.py)."""
+    from nmpc_avoid_ros.core.config.settings import ControllerSettings
+    from nmpc_avoid_ros.core.nlp.projection import TargetProjection
+    from nmpc_avoid_ros.core.problem.models import make_model
+
+    settings = ControllerSettings()
+    projection = TargetProjection(settings, make_model(settings.model))
+    begin = time.perf_counter()
+    cut = projection([8.0], end=begin)  # out of reach (|x1| <= 0.99 * 6), no time: the target itself
+    assert cut.tolist() == [8.0] and time.perf_counter() - begin < 0.02
+    assert projection([8.0])[0] == pytest.approx(5.94, abs=1e-6)  # solved again, with time

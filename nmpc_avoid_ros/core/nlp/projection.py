@@ -18,6 +18,7 @@ solved when the target changes (the last answer is kept).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import casadi as ca
@@ -26,11 +27,14 @@ import numpy as np
 from ..config.settings import ControllerSettings
 from ..problem.models import Model
 from .parts import problem_parts
+from .stop_at import StopAt
 
 #: a projection further than this (output units, inf-norm) from y_t means y_t was out of reach
 OUT_OF_REACH = 1e-6
 #: wall-time cap of one projection, s (a small problem: ~1 ms; the cap only guards absurd inputs)
 PROJECTION_TIME = 0.05
+#: IPOPT statuses of a projection cut short by the deadline or its cap: not kept
+CUT_SHORT = frozenset({"User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded"})
 
 
 class TargetProjection:
@@ -43,8 +47,9 @@ class TargetProjection:
         g = ca.vertcat(model.dynamics(x, u), hard)
         self._output = ca.Function("projection_output", [x, u], [model.output(x, u)])
         problem = {"x": ca.vertcat(x, u), "p": y_t, "f": ca.sumsqr(model.output(x, u) - y_t), "g": g}
+        self._stop_at = StopAt(n + m, g.numel(), model.p, "projection_stop_at")
         self._solver = ca.nlpsol("target_projection", "ipopt", problem, {
-            "print_time": False, "error_on_fail": False,
+            "print_time": False, "error_on_fail": False, "iteration_callback": self._stop_at,
             "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-12, "bound_relax_factor": 0.0,
                       "max_wall_time": PROJECTION_TIME}})
         #: solvers constructed here (NmpcController.nlp_builds counts them)
@@ -58,17 +63,21 @@ class TargetProjection:
         self._start = np.clip(np.zeros(n + m), self._lbx, self._ubx)
         self._last: tuple[tuple[float, ...], np.ndarray] | None = None
 
-    def __call__(self, y_t: Sequence[float]) -> np.ndarray:
-        """y* [p] for the target y_t [p] (a copy; y_t itself where the projection fails)."""
+    def __call__(self, y_t: Sequence[float], end: float = math.inf) -> np.ndarray:
+        """y* [p] for the target y_t [p] (a copy; y_t itself where the projection fails). The solve ends by
+        `end` (time.perf_counter s: the sample's deadline) or PROJECTION_TIME, whichever comes first; one cut
+        short answers y_t and is not kept (the next sample solves it again)."""
         y_t = np.asarray(y_t, float).ravel()
         key = tuple(y_t.tolist())
         if self._last is not None and self._last[0] == key:
             return self._last[1].copy()
+        self._stop_at.end = end
         sol = self._solver(x0=self._start, p=y_t, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg, ubg=self._ubg)
         z = np.asarray(sol["x"]).ravel()
         y_star = np.asarray(self._output(z[:self._n], z[self._n:])).ravel()
-        if not self._solver.stats()["success"] or not np.all(np.isfinite(y_star)) or \
-                np.max(np.abs(y_star - y_t)) <= OUT_OF_REACH:
+        stats = self._solver.stats()
+        if not stats["success"] or not np.all(np.isfinite(y_star)) or np.max(np.abs(y_star - y_t)) <= OUT_OF_REACH:
             y_star = y_t.copy()  # in reach: the target itself, to the last bit (the paper's loops are unchanged)
-        self._last = (key, y_star)
+        if stats["return_status"] not in CUT_SHORT:
+            self._last = (key, y_star)
         return y_star.copy()

@@ -44,6 +44,8 @@ if TYPE_CHECKING:
 #: use: IPOPT's own wall-time limit, and the deadline at which a call in the worker is abandoned; the
 #: fallback's recovery solve is limited to the rest (core/sample/fallback.py)
 SEARCH_SHARE = 0.8
+#: a cold start's time bound (no previous plan): this multiple of max_solve_time (NmpcController.sample_budget)
+COLD_START_TIME_FACTOR = 10.0
 
 #: return statuses after which the solution is used as is (IPOPT, sqpmethod; FATROP reports 0)
 SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level", "0"})

@@ -33,7 +33,7 @@ from ..nlp.projection import TargetProjection
 from ..nlp.search import SearchReport
 from ..nlp.stagewise import COLD_START_ITERATIONS, make_nlp
 from ..nlp.tiers import TieredNlp
-from ..nlp.tracking import SEARCH_SHARE, NlpBase, TrackingNlp
+from ..nlp.tracking import COLD_START_TIME_FACTOR, SEARCH_SHARE, NlpBase, TrackingNlp
 from ..nlp.worker import SolveWorker
 from ..problem.models import Model
 from ..problem.regions import Region
@@ -52,9 +52,6 @@ from .step_result import Plan, StepResult, validate_vector
 #: what a step may take beyond NmpcController.sample_budget(), s: the fallback's simulations and the
 #: result's bookkeeping after the recovery solve's limit (test/test_time_bound.py holds every step to it)
 TIME_BOUND_MARGIN = 0.05
-
-#: the reference's time budget for a cold start (no previous plan): this multiple of max_solve_time
-COLD_START_TIME_FACTOR = 10.0
 
 
 class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
@@ -342,8 +339,9 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         if not np.all(np.isfinite(x)):  # the prediction overflowed (a state far outside Z): plan from x itself
             x, delay = measured, 0.0
         start = None if time is None else time + delay
-        sample = self._sample(x, self.project_target(y_t), start, begin, measured=measured, delay=delay,
-                              command=in_force)
+        # the projection ends by the search's deadline too: every solver call of a sample by the one deadline
+        y_t = self.project_target(y_t, end=begin + SEARCH_SHARE * self.sample_budget())
+        sample = self._sample(x, y_t, start, begin, measured=measured, delay=delay, command=in_force)
         sample.measured_at, sample.settled = time, self.memory.prepared is None
         return sample
 

@@ -32,7 +32,8 @@ from ..config.settings import ControllerSettings
 from ..errors import InputError
 from ..nlp.parts import problem_parts
 from ..nlp.search import VIOLATION_TOLERANCE
-from ..nlp.tracking import SEARCH_SHARE, NlpBase
+from ..nlp.stop_at import StopAt
+from ..nlp.tracking import COLD_START_TIME_FACTOR, SEARCH_SHARE, NlpBase
 from ..problem.models import Model
 from .step_result import validate_vector
 
@@ -74,35 +75,6 @@ class FallbackChoice:
         return f"{self.kind}: least predicted violation over {self.horizon} samples ({others})"
 
 
-class _StopAt(ca.Callback):
-    """IPOPT's iteration callback that ends the solve (User_Requested_Stop) once time.perf_counter()
-    passes `end`: the recovery's own max_wall_time counts from its start, this from the sample's."""
-
-    def __init__(self, n_x: int, n_g: int, n_p: int) -> None:
-        ca.Callback.__init__(self)
-        self._sizes = {"x": n_x, "f": 1, "g": n_g, "lam_x": n_x, "lam_g": n_g, "lam_p": n_p}
-        self.end = math.inf
-        self.construct("recovery_stop_at", {})
-
-    def get_n_in(self) -> int:
-        return ca.nlpsol_n_out()
-
-    def get_n_out(self) -> int:
-        return 1
-
-    def get_name_in(self, i: int) -> str:
-        return ca.nlpsol_out(i)
-
-    def get_name_out(self, i: int) -> str:
-        return "stop"
-
-    def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        return ca.Sparsity.dense(self._sizes[ca.nlpsol_out(i)], 1)
-
-    def eval(self, arg: list) -> list:  # CasADi Callback's method name (no Python eval anywhere)
-        return [1 if time.perf_counter() >= self.end else 0]
-
-
 class FallbackSelector:
     """Simulates candidate input sequences and solves the recovery problem of one settings structure."""
 
@@ -138,10 +110,13 @@ class FallbackSelector:
         cost = ca.sumsqr(slack) + RECOVERY_REGULARISATION * ca.sumsqr(U - ca.repmat(u_ref, 1, H))
         problem = {"x": ca.vertcat(ca.vec(U), slack), "p": ca.vertcat(x0, par, u_ref), "f": cost,
                    "g": slack - excess}
-        self._stop_at = _StopAt(problem["x"].numel(), excess.numel(), problem["p"].numel())
+        self._stop_at = StopAt(problem["x"].numel(), excess.numel(), problem["p"].numel())
         options = {"print_time": False, "error_on_fail": False, "iteration_callback": self._stop_at,
                    "ipopt": {"print_level": 0, "sb": "yes", "max_iter": RECOVERY_ITERATIONS,
-                             "max_wall_time": (1 - SEARCH_SHARE) * settings.max_solve_time, "tol": 1e-8}}
+                             # the sample's end (StopAt) bounds it, a cold start's too; this only guards a
+                             # call outside a sample (end = inf)
+                             "max_wall_time": (1 - SEARCH_SHARE) * COLD_START_TIME_FACTOR * settings.max_solve_time,
+                             "tol": 1e-8}}
         self._recovery = ca.nlpsol("fallback_recovery", "ipopt", problem, options)
         #: solvers constructed here (NmpcController.nlp_builds counts them): the recovery solve
         self.solver_builds = 1
