@@ -174,7 +174,8 @@ def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Functi
         built = Path(tmp) / f"nmpc_{key}.so"
         returncode, stderr = _compile(compiler, Path(tmp) / source, built, own_group)
         if returncode != 0:
-            raise ConfigError(f"compiling the generated solver failed: {stderr.strip()[:500]}")
+            raise ConfigError(f"compiling the generated solver failed (exit status {returncode}): "
+                              f"{stderr.strip()[:500]}")
         os.replace(built, library)
     return library, False
 
