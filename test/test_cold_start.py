@@ -100,12 +100,11 @@ def test_a_start_among_ellipses_is_solved_on_the_tier_from_the_resting_plan():
 
 
 def test_the_straight_line_is_tried_when_the_resting_plan_is_unusable():
-    controller = NmpcController(shipped("vdp"))
+    controller = NmpcController(shipped("vdp"), cold_guesses=lambda x, y_t: [
+        broken_guess(controller), controller.escape.cold_guesses(x, y_t)[1]])
     controller.set_regions(VDP_ELLIPSES)
     straight = controller.escape.cold_guesses(np.array(PAPER_X0, float), np.array(PAPER_TARGET, float))[1]
     assert straight.label == "straight"
-    # patched: no seam injects a cold start's guesses yet (proposed: NmpcController(cold_guesses=...))
-    controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller), straight]
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     calls = solver_calls(controller, [result.search])
     assert calls["tier4"] == 1 and calls["reference"] == 0, calls  # the broken guess never reaches FATROP
@@ -133,10 +132,8 @@ def test_the_resting_plan_carries_a_start_where_the_straight_line_fails():
 
 
 def test_when_no_guess_is_usable_the_reference_solves_the_start():
-    controller = NmpcController(shipped("vdp"))
+    controller = NmpcController(shipped("vdp"), cold_guesses=lambda x, y_t: [broken_guess(controller)] * 2)
     controller.set_regions(VDP_ELLIPSES)
-    # patched: no seam injects a cold start's guesses yet (proposed: NmpcController(cold_guesses=...))
-    controller.escape.cold_guesses = lambda x, y_t: [broken_guess(controller)] * 2
     result = controller.step(PAPER_X0, PAPER_TARGET, time=0.0)
     calls = solver_calls(controller, [result.search])
     assert calls["reference"] == 1 and calls["tier4"] == 0, calls  # a non-finite guess never reaches FATROP
@@ -159,11 +156,9 @@ def test_regions_that_fit_no_tier_start_on_the_reference():
 
 
 def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
-    controller = NmpcController(shipped("vdp"))
     # the start the campaign run had: from the straight line (the resting plan takes another way)
-    guesses = controller.escape.cold_guesses
-    # patched: no seam injects a cold start's guesses yet (proposed: NmpcController(cold_guesses=...))
-    controller.escape.cold_guesses = lambda x, y_t: [g for g in guesses(x, y_t) if g.label == "straight"]
+    controller = NmpcController(shipped("vdp"), cold_guesses=lambda x, y_t: [
+        g for g in controller.escape.cold_guesses(x, y_t) if g.label == "straight"])
     results = []
     run = run_closed_loop(controller, VDP_0336["x0"], VDP_0336["target"], 30,
                           regions=lambda k: ellipses(VDP_0336, "state") if k == 0 else None,

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import time as clock
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -38,7 +38,7 @@ from ..nlp.worker import SolveWorker
 from ..problem.models import Model
 from ..problem.regions import Region
 from .answers import SampleAnswers
-from .candidates import EscapeGuesses
+from .candidates import EscapeGuesses, Guess
 from .fallback import FallbackSelector
 from .feedback import FeedbackLaws, Prepared
 from .latency import LatencyPrediction
@@ -60,7 +60,10 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
     The NLP is built once in the constructor; `step` only packs parameters and solves.
     """
 
-    def __init__(self, settings: ControllerSettings | None = None, model: Model | None = None) -> None:
+    def __init__(self, settings: ControllerSettings | None = None, model: Model | None = None,
+                 cold_guesses: Callable[[np.ndarray, np.ndarray], list[Guess]] | None = None) -> None:
+        """`cold_guesses` (x [n], y_t [p]) -> the guesses a cold start tries in order on an ellipse tier (default: the
+        resting plan and the straight line, core/sample/candidates.py); a seam for a user's own and for tests."""
         self.settings = settings or ControllerSettings()
         self.nlp = make_nlp(self.settings, model)
         self.model = self.nlp.model
@@ -89,6 +92,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         #: the state predicted over the loop's latency (core/sample/latency.py), also the mismatch's reference
         self.latency = LatencyPrediction(self.model, self.settings)
         self.escape = EscapeGuesses(self.cold_nlp or self.nlp, self.model, self.settings)
+        self.cold_guesses = cold_guesses or self.escape.cold_guesses
         # the passage mode's NLP: the same problem with the longer horizon, built here once
         long_nlp = None
         if self.settings.escape_horizon:

@@ -75,7 +75,7 @@ class SearchPhases:
         starts = []
         if self.tiered.tier is not None and mem.plan is None and self.escape.available:
             starts = [guess_start(self.tiered, x, sample.par, guess, budget=budget, cold=True)
-                      for guess in self.escape.cold_guesses(x, y_t)]
+                      for guess in self.cold_guesses(x, y_t)]
         # SQP paths try a cold start themselves (cheap, and it works on small problems); FATROP fails
         # slowly there (hundreds of ms): the reference solves it
         if s.solver.startswith("sqp"):
