@@ -59,7 +59,8 @@ def load_scenario(config: str | Path | None, **overrides: Any) -> Scenario:
     for key, value in overrides.items():
         if value is not None and key not in run_keys:
             ctrl[key] = value
-    settings = ControllerSettings.from_params(ctrl)
+    # offline: the compiled solvers from the first solve (a live config's background compile is for a node)
+    settings = ControllerSettings.from_params(ctrl).replace(codegen_background=False)
     pick = lambda key, default: overrides.get(key) if overrides.get(key) is not None else default  # noqa: E731
     return Scenario(
         settings=settings,

@@ -101,16 +101,20 @@ def _prepare(folder: Path) -> str:
     return compiler
 
 
+def function_library(function: ca.Function, folder: Path) -> Path:
+    """Where `compiled_function` caches the library of `function`."""
+    digest = hashlib.sha256()
+    for part in (ca.__version__, " ".join(COMPILE_FLAGS), function.serialize()):
+        digest.update(part.encode())
+    return folder / f"{function.name()}_{digest.hexdigest()[:16]}.so"
+
+
 def compiled_function(function: ca.Function, folder: Path) -> ca.Function:
     """`function` generated as C, compiled (COMPILE_FLAGS) and loaded, cached in `folder` by a SHA-256 of the CasADi
     version, the flags and the serialised function. For a small Function on a latency-critical path (the feedback
     law's feasibility test, core/sample/feedback.py: 19 us compiled against 42 us interpreted, the live van der
     Pol NLP); compiled at once on a miss (about a second)."""
-    digest = hashlib.sha256()
-    for part in (ca.__version__, " ".join(COMPILE_FLAGS), function.serialize()):
-        digest.update(part.encode())
-    name = function.name()
-    library = folder / f"{name}_{digest.hexdigest()[:16]}.so"
+    library, name = function_library(function, folder), function.name()
     if not library.exists():
         compiler = _prepare(folder)
         with tempfile.TemporaryDirectory(dir=folder) as tmp:

@@ -101,9 +101,10 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         self.passage = Passage(long_nlp, self.nlp, self.model, self.settings)
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
         #: the feedback laws of prepared plans (core/sample/feedback.py), with the `feedback` setting
+        s = self.settings
         self.feedback_laws = FeedbackLaws([nlp for nlp in (self.nlp, long_nlp) if nlp is not None],
-                                          cache_dir(self.settings.cache_dir) if self.settings.codegen else None) \
-            if self.settings.feedback else None
+                                          cache_dir(s.cache_dir) if s.codegen else None, s.codegen_background) \
+            if s.feedback else None
         # the regular NLP solved on the smallest ellipse tier that holds the regions (core/nlp/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
         self.tiered.set_regions(self._regions)  # no regions yet: the smallest tier

@@ -20,19 +20,24 @@ config: commands within 1e-10 of a full solve at the same state; docs/design.md)
 
 from __future__ import annotations
 
+import logging
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
+from ..errors import ConfigError
 from ..nlp.buffered import Buffered
-from ..nlp.codegen import compiled_function
+from ..nlp.codegen import compiled_function, function_library
 from ..nlp.search import VIOLATION_TOLERANCE
 from ..nlp.sensitivity import FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
 from .status import FeedbackOutcome
 from .step_result import Plan
+
+log = logging.getLogger(__name__)
 
 #: the largest constraint violation of a moved plan (state and region-function units): its gaps are second
 #: order in the state's distance from the predicted one (1e-5 for a 2e-3 miss on the paper's plant), far
@@ -60,8 +65,10 @@ class FeedbackLaws:
     """The KKT sensitivity of each NLP a plan is kept in (the regular and the passage NLP), and each one's
     feasibility test of a moved plan; all built in the constructor (core/nlp/sensitivity.py)."""
 
-    def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None) -> None:
-        """`compiled_in`: the feasibility tests are compiled and cached there (core/nlp/codegen.py); None: not."""
+    def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None, background: bool = False) -> None:
+        """`compiled_in`: the feasibility tests are compiled and cached there (core/nlp/codegen.py; None: not);
+        `background`: one missing from the cache is compiled by a thread while the interpreted one serves (a first
+        start waits for nothing, as the solvers with codegen_background)."""
         self._sensitivity: dict[int, KktSensitivity] = {}
         self._violation: dict[int, Buffered] = {}
         for nlp in nlps:
@@ -69,8 +76,21 @@ class FeedbackLaws:
             followed = np.concatenate([np.arange(n), np.arange(count - size, count)])  # x(0) and the slots
             self._sensitivity[id(nlp)] = KktSensitivity(nlp.problem, followed)
             violation = _violation_function(nlp)
-            self._violation[id(nlp)] = Buffered(violation if compiled_in is None else
-                                                compiled_function(violation, compiled_in))
+            if compiled_in is None:
+                self._violation[id(nlp)] = Buffered(violation)
+            elif background and not function_library(violation, compiled_in).exists():
+                self._violation[id(nlp)] = Buffered(violation)
+                threading.Thread(target=self._compile, args=(id(nlp), violation, compiled_in), daemon=True,
+                                 name="feasibility-test-compile").start()
+            else:
+                self._violation[id(nlp)] = Buffered(compiled_function(violation, compiled_in))
+
+    def _compile(self, key: int, violation: ca.Function, folder: Path) -> None:
+        """Compile a feasibility test and swap it in (one dict assignment: a feedback call uses either)."""
+        try:
+            self._violation[key] = Buffered(compiled_function(violation, folder))
+        except ConfigError as error:  # the interpreted test serves on, as a failed solver compile does
+            log.warning(f"the feedback law's feasibility test stays interpreted: {error}")
 
     def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
         """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none."""

@@ -206,7 +206,8 @@ def load_settings(config: Path, max_solve_time: float | None = None) -> Controll
 def settings_from_params(params: Mapping[str, Any], max_solve_time: float | None = None,
                          overrides: Mapping[str, Any] | None = None) -> ControllerSettings:
     """Controller settings of a params section, with the campaign's budget and run-time overrides."""
-    settings = ControllerSettings.from_params(dict(params))
+    # offline: the compiled solvers from the first solve (a live config's background compile is for a node)
+    settings = ControllerSettings.from_params(dict(params)).replace(codegen_background=False)
     if max_solve_time:
         settings = settings.replace(max_solve_time=max_solve_time)
     return settings.replace(**overrides) if overrides else settings
