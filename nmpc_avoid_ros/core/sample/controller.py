@@ -278,8 +278,10 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         law = self.feedback_laws.prepare(nlp, mem.plan, sample.par) if best.clear or s.mu == 0 else \
             "the prepared plan penetrates"
         mem.plan.age = -1  # the plan of the sample to come
-        mem.prepared = Prepared(mem.plan, nlp, None if isinstance(law, str) else law, law if isinstance(law, str)
-                                else "", x, start, delay, clock.perf_counter() - begin)
+        ready = not isinstance(law, str)
+        costs = self.feedback_laws.costs(nlp, law.w, sample.par) if ready else None
+        mem.prepared = Prepared(mem.plan, nlp, law if ready else None, "" if ready else law, x, start, delay,
+                                clock.perf_counter() - begin, costs)
         return mem.prepared
 
     def _feedback(self, sample: Sample, prepared: Prepared) -> StepResult | None:
@@ -295,8 +297,9 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         nlp, plan = prepared.nlp, prepared.plan
         U, X, y_a, _ = nlp.layout.split_w(w)
         x_a, u_a = (v.copy() for v in nlp.steady(w))
+        costs = plan.costs if prepared.costs is None else prepared.costs.at(w, sample.par)  # the certificate's V_N
         self.memory.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, plan.lam_x, plan.lam_g,
-                                0, plan.costs)
+                                0, costs)
         result = self._result(self.memory.plan, sample.x, 0, StepStatus.OK, "feedback", 0, False)
         result.horizon, result.feedback = nlp.layout.horizon, outcome
         result.search = SearchReport(phase="feedback", kept="prepared")
