@@ -101,3 +101,17 @@ def test_the_phase_portrait_spans_every_trajectory(tmp_path):
     (x_lo, x_hi), (y_lo, y_hi) = covering_limits([inside, beyond], (-6.0, 6.0), (-2.0, 2.0))
     assert x_lo == -6.0 and x_hi > 7.5 and y_lo < -2.6 and y_hi > 2.24
     assert phase_portrait([inside, beyond], tmp_path / "p.png").stat().st_size > 10_000
+
+
+def test_simulate_json_carries_the_two_phases_of_each_sample(tmp_path):
+    """With feedback on, each sample's preparation and feedback times and what became of its prepared plan."""
+    config = tmp_path / "feedback.yaml"
+    config.write_text("/**/controller:\n  ros__parameters:\n    feedback: true\n")
+    out = tmp_path / "run.json"
+    assert simulate_main(["--config", str(config), "--steps", "12", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert len(data["feedback_ms"]) == len(data["preparation_ms"]) == len(data["feedback"]) == 12
+    answered = [k for k, outcome in enumerate(data["feedback"]) if outcome == "answered"]
+    assert len(answered) >= 8 and data["feedback"][0] == ""  # the first sample had nothing prepared
+    for k in answered:  # the feedback alone is a fraction of the sample's solver time, which counts both
+        assert 0 < data["feedback_ms"][k] < data["solve_ms"][k] and data["preparation_ms"][k] > 0

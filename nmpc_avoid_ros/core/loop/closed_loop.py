@@ -281,6 +281,11 @@ class ClosedLoopRun:
     # [K] StepResult.predicted_violation: of the applied fallback or bounded-violation input, else NaN
     predicted_violations: list[float] = field(default_factory=list)
     certificate: list[dict] = field(default_factory=list)  # [K] CertificateSample.as_dict() per sample
+    # [K] the two phases (core/sample/feedback.py): s from a sample's start to the command where its prepared plan
+    # answered (0 else), s of its preparation between the samples, and what became of it ('' if none was)
+    feedback_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    preparation_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    feedback: list[str] = field(default_factory=list)
 
     @classmethod
     def from_trajectory(cls, run: Trajectory, info: dict | None = None) -> ClosedLoopRun:
@@ -291,7 +296,9 @@ class ClosedLoopRun:
                    run.iterations, [r.status for r in res], [r.solver_status for r in res],
                    np.array([(r.offset_cost, r.avoidance_cost, r.tracking_cost) for r in res]).reshape(K, 3),
                    run.sample_time, dict(info or {}), run.regions, run.stopped, [r.search for r in res],
-                   [r.predicted_violation for r in res])
+                   [r.predicted_violation for r in res], feedback_time=np.array([r.feedback_time for r in res]),
+                   preparation_time=np.array([r.preparation_time for r in res]),
+                   feedback=[str(r.feedback or "") for r in res])
 
     def to_json(self) -> dict:
         """The JSON layout of `simulate --json` (lists of rows, solve time in ms)."""
@@ -301,6 +308,9 @@ class ClosedLoopRun:
             "y_a": self.y_a.tolist(),
             "target": self.targets.tolist(),
             "solve_ms": (self.solve_time * 1e3).tolist(),
+            "feedback_ms": (self.feedback_time * 1e3).tolist(),
+            "preparation_ms": (self.preparation_time * 1e3).tolist(),
+            "feedback": self.feedback,
             "iterations": self.iterations.tolist(),
             "status": self.status,
             "solver_status": self.solver_status,
