@@ -44,9 +44,9 @@ def _settings_fields(settings: ControllerSettings) -> dict:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(settings).items()}
 
 
-def _sample(state, command, y_a, state_time, node="/controller") -> DiagnosticArray:
+def _sample(state, command, y_a, state_time, node="/controller", **extra: str) -> DiagnosticArray:
     values = {"state": str(list(state)), "command": str(list(command)), "y_a": str(list(y_a)), "solve_time_ms": "5.0",
-              "status": "ok", "state_time": repr(state_time)}
+              "status": "ok", "state_time": repr(state_time), **extra}
     status = DiagnosticStatus(name=f"{node}: nmpc", hardware_id=node,
                               values=[KeyValue(key=k, value=v) for k, v in values.items()])
     return DiagnosticArray(status=[status])
@@ -67,7 +67,7 @@ def _vdp_states() -> list[np.ndarray]:
     return states
 
 
-def _vdp_bag(path, *, records=True, refused=True):
+def _vdp_bag(path, *, records=True, refused=True, phases=False):
     """The van der Pol live config's run of X1 (module doc): targets 5 then -3 and, with `refused`, a
     wrong-size target [5, 0] the controller refused; one command beyond the input box (6.3)."""
     settings = ControllerSettings.from_params(load_params_file(CONFIG / "van_der_pol_live.yaml").section("controller"))
@@ -87,7 +87,12 @@ def _vdp_bag(path, *, records=True, refused=True):
             t = T0 + round(k * TS * NS)
             # u = x1 holds [x1, 0] still: the re-simulation sees no excursion; the plant got 6.3 once
             bag.write_message("/command", Float64MultiArray(data=[6.3] if k == 3 else [x1]), t + 2 * 10**6)
-            bag.write_message("/diagnostics", _sample([x1, 0.0], [x1], [x1], t * 1e-9), t + 3 * 10**6)
+            # with `phases`: the first sample searched, then every third one (its prepared plan refused), the rest
+            # answered by the prepared plan in (k + 1) * 0.01 ms after a 20 ms preparation
+            extra = {} if not phases else {"feedback": "" if k == 0 else "inputs_changed" if k % 3 == 0 else "answered",
+                                           "feedback_ms": f"{0.0 if k % 3 == 0 else (k + 1) * 0.01:.4f}",
+                                           "preparation_ms": "0.000" if k == 0 else "20.000"}
+            bag.write_message("/diagnostics", _sample([x1, 0.0], [x1], [x1], t * 1e-9, **extra), t + 3 * 10**6)
     return settings, states
 
 
@@ -304,3 +309,17 @@ def test_signed_distance_to_an_ellipse_is_the_euclidean_one(point, expected):
     c, s = math.cos(0.7), math.sin(0.7)
     moved = (1.0 + c * point[0] - s * point[1], -2.0 + s * point[0] + c * point[1])
     assert signed_distance(turned, moved) == pytest.approx(signed_distance(ellipse, point), abs=1e-9)
+
+
+def test_the_two_phases_are_reported_where_the_bag_has_them(vdp_metrics, tmp_path):
+    """feedback_ms of the samples the prepared plan answered, the preparations (core/sample/feedback.py); an older
+    bag, without them, has no such metric."""
+    metrics, _ = vdp_metrics
+    assert "feedback" not in metrics
+    _vdp_bag(tmp_path / "phases.mcap", phases=True)
+    assert analyze_main([str(tmp_path / "phases.mcap"), "--out", str(tmp_path / "o")]) == 0
+    (metrics,) = json.loads((tmp_path / "o" / "metrics.json").read_text())["bags"]
+    answered = [k for k in range(len(X1)) if k % 3]
+    assert metrics["feedback"]["answered"] == len(answered) and metrics["feedback"]["prepared"] == len(X1) - 1
+    assert metrics["feedback"]["feedback_ms"]["median"] == pytest.approx(np.median([(k + 1) * 0.01 for k in answered]))
+    assert metrics["feedback"]["preparation_ms"]["median"] == pytest.approx(20.0)

@@ -77,6 +77,10 @@ class RecordedRun:
     #: s each sample's command acted after its state (diagnostics `predicted_delay_ms`: a latency-compensated
     #: controller); None: at once (older bags)
     delays: np.ndarray | None = None
+    #: the two phases per sample (core/sample/feedback.py; diagnostics `feedback`, `feedback_ms`, `preparation_ms`):
+    #: what became of the prepared plan ('' none), ms to the command where it answered, ms of its preparation;
+    #: empty for bags of controllers without them
+    phases: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def states_with_final(self) -> np.ndarray:
@@ -208,6 +212,10 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
         interface=interface,
         delays=(np.array([float(v["predicted_delay_ms"]) * 1e-3 for _, v in samples])
                 if all("predicted_delay_ms" in v for _, v in samples) else None),
+        phases=({"feedback": np.array([v["feedback"] for _, v in samples]),
+                 "feedback_ms": np.array([float(v["feedback_ms"]) for _, v in samples]),
+                 "preparation_ms": np.array([float(v["preparation_ms"]) for _, v in samples])}
+                if all("feedback_ms" in v for _, v in samples) else {}),
     )
 
 
@@ -263,6 +271,12 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
     if model.name == "van_der_pol":  # the paper's energy-rate measure
         metrics["max_abs_x1x2"] = max_abs_product(xs)
     metrics["solve_ms"] = time_stats(run.solve_ms)
+    if run.phases:  # answered by the prepared plan: the feedback's own time; the preparations between the samples
+        answered, prepared = run.phases["feedback"] == "answered", run.phases["feedback"] != ""
+        metrics["feedback"] = {
+            "answered": int(np.sum(answered)), "prepared": int(np.sum(prepared)),
+            "feedback_ms": time_stats(run.phases["feedback_ms"][answered]) if answered.any() else None,
+            "preparation_ms": time_stats(run.phases["preparation_ms"][prepared]) if prepared.any() else None}
     metrics["deadline_overruns"] = int(np.sum(run.solve_ms > settings.sample_time * 1e3))
     metrics["fallbacks"] = sum(StepStatus(s).is_fallback for s in run.status)
     metrics["rejected_inputs"] = run.counters.get("rejected_inputs", 0)
