@@ -117,7 +117,7 @@ def test_the_escape_keeps_the_cheaper_plan_and_refuses_one_that_buys_progress_wi
     w0 = nlp.fill_slacks(nlp.layout.join_w(np.zeros((5, 1)) + 2.95, np.tile(x, (5, 1)), np.array([2.95]), None), par)
     w = nlp.solve(w0, par, np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size))[0]
     base = solved("shifted", nlp, w, plan_cost(nlp, w, par), nlp.max_depth(w, par))
-    stalled_y_a = nlp.layout.split_w(w)[2]
+    stalled_y_a = nlp.layout.y_a(w)
     assert stalled_y_a[0] < 2.96
     beyond = controller.escape.guesses(x, stalled_y_a, y_t, par, controller.regions)
     assert [g.label for g in beyond][:1] == ["beyond0"] and beyond[0].y_a[0] > 3.45

@@ -32,16 +32,12 @@ import numpy as np
 
 from ..core.config.settings import ControllerSettings
 from ..core.errors import ConfigError
+from ..core.nlp.tracking import BUDGET_EXHAUSTED, SOLVED  # the statuses that count as solved, or budget-cut
 from ..core.problem.expressions import parse_keep_in
 from ..core.problem.models import Model, make_model
 from ..core.problem.regions import Region, SlotLayout
+from ..core.sample.step_result import shifted_rows
 from .variants import Sample, StepperFactory
-
-#: IPOPT statuses that count as solved (the same set as core.controller.SOLVED)
-SOLVED = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
-#: IPOPT statuses that mean the iteration or time budget cut the solve
-BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded",
-                              "Maximum_CpuTime_Exceeded"})
 
 
 def ipopt_options(settings: ControllerSettings) -> dict[str, float | int | str]:
@@ -134,8 +130,8 @@ def initial_guess(pieces: ProblemPieces, plan: Plan | None, x: np.ndarray,
         ramp = np.linspace(0, 1, N + 1)[:, None]
         return np.tile(u_a, (N, 1)), (1 - ramp) * x + ramp * x_a, y_a, x_a, u_a
     shift = plan.age + 1
-    U = np.vstack([plan.U[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
-    X = np.vstack([x[None, :], plan.X[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])
+    U, X = shifted_rows(plan.U, plan.u_a, shift), shifted_rows(plan.X, plan.x_a, shift)
+    X[0] = x
     return U, X, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy()
 
 

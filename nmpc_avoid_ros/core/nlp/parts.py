@@ -49,10 +49,15 @@ class NlpLayout:
         w = np.asarray(w, float).ravel()
         U = w[: m * N].reshape(N, m)
         X = w[m * N: m * N + n * N].reshape(N, n)
-        y_a = w[m * N + n * N: m * N + n * N + p]
+        y_a = self.y_a(w)
         start = m * N + n * N + p
         rest = None if self.closed_form else w[start:start + n + m]
         return U, X, y_a, rest
+
+    def y_a(self, w: np.ndarray) -> np.ndarray:
+        """The artificial output y_a [p] of w (split_w's third part: a view of w where w is a float array)."""
+        start = (self.m + self.n) * self.horizon
+        return np.asarray(w, float).ravel()[start:start + self.p]
 
     def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: np.ndarray | None,
                x0: np.ndarray | None = None) -> np.ndarray:

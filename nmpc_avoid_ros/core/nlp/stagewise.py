@@ -65,7 +65,11 @@ class StagewiseLayout:
     def split_w(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, None]:
         """w -> U [N, m], X [N, n] (x(1..N)), y_a [p], None."""
         w = np.asarray(w, float).ravel()
-        return w[self.u_index], w[self.x_index[1:]], w[self.y_index[0]], None
+        return w[self.u_index], w[self.x_index[1:]], self.y_a(w), None
+
+    def y_a(self, w: np.ndarray) -> np.ndarray:
+        """The artificial output y_a [p] of w: stage 0's copy (split_w's third part)."""
+        return np.asarray(w, float).ravel()[self.y_index[0]]
 
     def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: None = None,
                x0: np.ndarray | None = None) -> np.ndarray:

@@ -101,7 +101,7 @@ class SampleAnswers:
         if plan is not None:
             plan.age += 1
             N = len(plan.inputs)
-            shifted = np.vstack([plan.inputs[plan.age:], np.tile(plan.u_a, (min(plan.age, N), 1))])[:H]
+            shifted = plan.shifted(plan.age)[0][:H]
             u_a = plan.u_a
         choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, sample.in_domain,
                                       sample.end)
@@ -124,11 +124,10 @@ class SampleAnswers:
     def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
                 budget_cut: bool) -> StepResult:
         """The result of applying `plan` aged by `age` samples at state x (the solve time is set by `step`)."""
-        N = len(plan.inputs)  # the regular horizon, or the passage mode's
+        inputs, states = plan.shifted(age)  # of the regular horizon, or the passage mode's
         # into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond them seen)
-        inputs = np.clip(np.vstack([plan.inputs[age:], np.tile(plan.u_a, (min(age, N), 1))]), self._input_lo,
-                         self._input_hi)
-        states = np.vstack([x, plan.states[age + 1:], np.tile(plan.x_a, (min(age, N), 1))])
+        inputs = np.clip(inputs, self._input_lo, self._input_hi)
+        states[0] = x
         return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
                           *plan.costs, status, solver_status, iterations, 0.0, budget_cut)
 

@@ -84,7 +84,7 @@ class Passage:
         """The long NLP's starts from the escape guesses (`per_sample` > 0: that many from `next_guess`
         on), the index of the guess after them and how many guesses remain after them."""
         assert self.nlp is not None and self.guesses is not None
-        y_a = base.nlp.layout.split_w(base.w)[2].copy()
+        y_a = base.nlp.layout.y_a(base.w).copy()
         guesses = self.guesses.guesses(x, y_a, y_t, par, regions)
         batch, rest = guess_batch(guesses, next_guess, per_sample)
         starts = [guess_start(self.nlp, x, par, guess, f"passage:{guess.label}") for guess in batch]
@@ -94,13 +94,13 @@ class Passage:
         """Why a long plan may not enter the mode ('' if it may): it penetrates, its offset cost is not
         below PASSAGE_GAIN times the short plan's, or its y_a is not past the block."""
         assert self.nlp is not None and self.guesses is not None
-        y_a = base.nlp.layout.split_w(base.w)[2].copy()
+        y_a = base.nlp.layout.y_a(base.w).copy()
         offset = float(base.nlp.terms(base.w, par)[0][0])
         nlp, guesses = self.nlp, self.guesses
 
         def why(candidate: Candidate) -> str:
             long_offset = float(nlp.terms(candidate.w, par)[0][0])
-            y_long = nlp.layout.split_w(candidate.w)[2]
+            y_long = nlp.layout.y_a(candidate.w)
             return ("penetrates" if candidate.depth > VIOLATION_TOLERANCE else
                     "offset not lower" if long_offset >= PASSAGE_GAIN * offset else
                     "y_a not past the block" if not guesses.crosses_block(y_a, y_long, par) else "")
@@ -113,21 +113,16 @@ class Passage:
         A state at rest near x_a is the simplest case."""
         if plan is None:
             return False
-        states = _padded(plan.states, plan.x_a, horizon)
-        return float(np.max(np.abs(states[plan.age + horizon:] - plan.x_a))) <= PASSAGE_REST
+        states = plan.shifted(plan.age + 1)[1]  # seen from now
+        return float(np.max(np.abs(states[horizon - 1:] - plan.x_a))) <= PASSAGE_REST
 
     def hand_back(self, plan: Plan, short: NlpBase) -> Plan:
         """The regular NLP's plan made of the long plan's first N stages (as of the last sample, like any
         kept plan; x(N) = x_a), with zero multipliers: the mode ends with it. A prepared plan (age -1, for
         this sample: core/sample/feedback.py) stays one."""
-        N, a = short.layout.horizon, max(plan.age, 0)
-        inputs, states = _padded(plan.inputs, plan.u_a, N), _padded(plan.states, plan.x_a, N)
-        states = states[a:a + N + 1].copy()
+        N = short.layout.horizon
+        inputs, states = plan.shifted(max(plan.age, 0))
+        states = states[:N + 1].copy()
         states[-1] = plan.x_a
-        return Plan(inputs[a:a + N].copy(), states, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
+        return Plan(inputs[:N].copy(), states, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
                     np.zeros(short.layout.n_w), np.zeros(short.lbg.size), min(plan.age, 0), plan.costs)
-
-
-def _padded(rows: np.ndarray, last: np.ndarray, count: int) -> np.ndarray:
-    """rows [K, d] followed by `count` copies of last [d] (a plan's steady tail)."""
-    return np.vstack([rows, np.tile(last, (count, 1))])

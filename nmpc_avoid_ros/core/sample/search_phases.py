@@ -95,7 +95,7 @@ class SearchPhases:
         if self.memory.escape_wait > 0:
             self.memory.escape_wait -= 1
             return False
-        y_a = base.nlp.layout.split_w(base.w)[2]
+        y_a = base.nlp.layout.y_a(base.w)
         return self.escape.should_try(y_a, previous_y_a, sample.y_t, sample.par)
 
     def _escape(self, sample: Sample, base: Candidate, penetrating: bool, report: SearchReport) -> Candidate:
@@ -106,7 +106,7 @@ class SearchPhases:
         # van der Pol scene: the same plans, 12-14 ms for three guesses); the SQP paths stall from far
         # guesses: the reference solves them
         nlp = self.tiered if s.solver == "fatrop" else (self.cold_nlp or self.nlp)
-        y_a = base.nlp.layout.split_w(base.w)[2]
+        y_a = base.nlp.layout.y_a(base.w)
         make = self.escape.penetration_guesses if penetrating else self.escape.guesses
         guesses = make(x, y_a, sample.y_t, sample.par, self._regions)
         # a penetrating plan is a safety matter: all its guesses now; a stall's may take several samples
@@ -132,7 +132,7 @@ class SearchPhases:
         passage NLP's plan that passes it (entering the mode), else the base."""
         mem, s = self.memory, self.settings
         mem.passage_due = False
-        y_a = base.nlp.layout.split_w(base.w)[2]
+        y_a = base.nlp.layout.y_a(base.w)
         if not self.escape.should_try(y_a, previous_y_a, sample.y_t, sample.par):
             return base
         starts, next_guess, rest = self.passage.starts(sample.x, sample.y_t, sample.par, base, self._regions,

@@ -106,6 +106,23 @@ class Plan:
     age: int = 0
     costs: tuple[float, float, float] = field(default=(math.nan, math.nan, math.nan))
 
+    def shifted(self, by: int) -> tuple[np.ndarray, np.ndarray]:
+        """The plan seen `by` >= 0 samples later: (inputs [N, m]: u(by..N-1), then u_a; states [N+1, n]:
+        x(by..N), then x_a). by = 0 gives copies of inputs and states; the warm start shifts by age + 1
+        (a prepared plan's age is -1: core/sample/feedback.py), an applied plan by its age."""
+        return shifted_rows(self.inputs, self.u_a, by), shifted_rows(self.states, self.x_a, by)
+
+
+def shifted_rows(rows: np.ndarray, last: np.ndarray, by: int) -> np.ndarray:
+    """rows [K, d] shifted `by` >= 0 rows up and padded with last [d] to K rows: rows(by..K-1), then last.
+
+    The one shift of a plan (Plan.shifted) and of a budget-cut iterate (core/sample/warm_start.py)."""
+    if by < 0:
+        raise ValueError(f"a plan shifts by 0 or more samples, not {by}")
+    rows = np.asarray(rows, float)
+    kept = rows[by:]
+    return np.vstack([kept, np.tile(last, (len(rows) - len(kept), 1))])
+
 
 def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int, max_abs: float = 1e12) -> np.ndarray:
     """A finite float vector of exactly `size` entries, each within +-`max_abs`, else InputError naming the problem.

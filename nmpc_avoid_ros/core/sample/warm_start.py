@@ -12,7 +12,7 @@ import numpy as np
 from ..config.settings import ControllerSettings
 from ..nlp.tracking import NlpBase
 from ..problem.models import Model
-from .step_result import Plan
+from .step_result import Plan, shifted_rows
 
 
 def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | None,
@@ -39,8 +39,7 @@ def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | Non
         w, lam_x, lam_g = pending
         U, X, y_a, rest = layout.split_w(w)
         x_a, u_a = (v.copy() for v in nlp.steady(w))
-        U = np.vstack([U[1:], u_a])
-        X = np.vstack([X[1:], x_a])
+        U, X = shifted_rows(U, u_a, 1), shifted_rows(X, x_a, 1)
         lam_x, lam_g = nlp.shift_duals(lam_x, lam_g, 1)
         return layout.join_w(U, X, y_a, rest, x0=x), lam_x, lam_g
     if plan is None:
@@ -48,8 +47,8 @@ def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | Non
         rest = None if layout.closed_form else np.concatenate([X[-1], U[-1]])
         return layout.join_w(U, X, y_a, rest, x0=x), np.zeros(layout.n_w), np.zeros(nlp.lbg.size)
     shift = plan.age + 1
-    U = np.vstack([plan.inputs[shift:], np.tile(plan.u_a, (min(shift, N), 1))])
-    X = np.vstack([plan.states[1 + shift:], np.tile(plan.x_a, (min(shift, N), 1))])
+    U, states = plan.shifted(shift)
+    X = states[1:]  # x(0) is the measurement x
     rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
     w0 = layout.join_w(U, X, plan.y_a, rest, x0=x)
     if not keep_duals:
@@ -64,10 +63,9 @@ REST_TOLERANCE = 1e-3
 
 def plan_rests(plan: Plan) -> bool:
     """Whether the plan's shifted rest (inputs u(age+1..), states x(age+2..)) is its steady state (x_a, u_a)."""
-    shift = plan.age + 1
-    inputs, states = plan.inputs[shift:], plan.states[1 + shift:]
+    inputs, states = plan.shifted(plan.age + 1)  # padded with (u_a, x_a) themselves: no other answer
     return bool(np.all(np.abs(inputs - plan.u_a) <= REST_TOLERANCE) and
-                np.all(np.abs(states - plan.x_a) <= REST_TOLERANCE))
+                np.all(np.abs(states[1:] - plan.x_a) <= REST_TOLERANCE))
 
 
 def turn_start(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, settings: ControllerSettings, model: Model,
