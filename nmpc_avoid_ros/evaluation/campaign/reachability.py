@@ -1,8 +1,8 @@
 """Reachability of a campaign target: Y_r, the best reachable and admissible points, passages.
 
 * best reachable point y*: the projection of y_t onto Y_r, the outputs of steady states in
-  lambda * Z (paper eq. 4-5), by a small IPOPT problem min |y - y_t|^2 s.t. (g_x(y), g_u(y)) in
-  lambda * Z (box and hard constraints); the target is reachable iff |y* - y_t| < 1e-6.
+  lambda * Z (paper eq. 4-5): the controller's own TargetProjection (core/nlp/projection.py), y_t
+  itself when it is within 1e-6 (OUT_OF_REACH) of Y_r: the target is reachable iff y* = y_t.
 * best admissible point y~: the point of Y_r nearest to y_t whose steady state is outside every
   region (ellipses and keep-in expressions); y* unless a region covers y*'s steady state, else
   found on a grid over Y_r (1e-3 in 1-d; 0.05 then refined to 0.002 in 2-d).
@@ -20,6 +20,7 @@ import numpy as np
 from ...core.config.settings import ControllerSettings
 from ...core.errors import ConfigError
 from ...core.loop.metrics import region_depth
+from ...core.nlp.projection import TargetProjection
 from ...core.problem.expressions import parse_keep_in
 from ...core.problem.models import Model
 from ...core.problem.regions import Region
@@ -50,24 +51,12 @@ class ReachableSet:
         self.keep = ca.Function("keep", [xsym, usym], [ca.vertcat(*keep) if keep else ca.SX(0, 1)])
         self.lo = lam * np.array([*settings.state_min, *settings.input_min], float)
         self.hi = lam * np.array([*settings.state_max, *settings.input_max], float)
-        y_t = ca.SX.sym("y_t", model.p)
-        g = [ca.vertcat(xs, us)]
-        lbg, ubg = list(self.lo), list(self.hi)
-        if hard:
-            g.append(self.hard(xs / lam, us / lam))
-            lbg += [-np.inf] * len(hard)
-            ubg += [0.0] * len(hard)
-        nlp = {"x": y, "p": y_t, "f": ca.sumsqr(y - y_t), "g": ca.vertcat(*g)}
-        self._proj = ca.nlpsol("projection", "ipopt", nlp, {"print_time": False, "ipopt": {
-            "print_level": 0, "sb": "yes", "tol": 1e-12, "bound_relax_factor": 0.0}})
-        self._lbg, self._ubg = np.array(lbg), np.array(ubg)
+        self._projection = TargetProjection(settings, model)
         self.box = self._output_box()
 
     def project(self, y_t: Sequence[float]) -> np.ndarray:
-        """y* [p]: the point of Y_r nearest to y_t (Euclidean)."""
-        y_t = np.asarray(y_t, float)
-        sol = self._proj(x0=y_t, p=y_t, lbg=self._lbg, ubg=self._ubg)
-        return np.asarray(sol["x"]).ravel()
+        """y* [p]: the point of Y_r nearest to y_t (Euclidean), as the controller projects its target."""
+        return self._projection(y_t)
 
     def _output_box(self) -> np.ndarray:
         """[p, 2] bounds of Y_r (projections of far-away points along each axis)."""
