@@ -133,7 +133,9 @@ def _factor(hessian: sp.csc_matrix, jacobian: sp.csr_matrix) -> spla.SuperLU | s
     kkt = sp.bmat([[hessian + REGULARISATION * sp.eye(n), jacobian.T], [jacobian, -REGULARISATION * sp.eye(k)]],
                   format="csc")
     try:
-        return spla.splu(kkt)
+        # a symmetric fill-reducing order: the KKT matrix is symmetric (measured on the live van der Pol NLP: LU
+        # factors of 3100 entries against 5900 with the default COLAMD, and solves 20x faster)
+        return spla.splu(kkt, permc_spec="MMD_AT_PLUS_A")
     except RuntimeError as error:  # exactly singular
         return f"the KKT matrix is singular ({error})"
 

@@ -110,6 +110,16 @@ class SlotLayout:
     def size(self) -> int:
         return self.max_ellipses * ELLIPSE_SLOT_SIZE + self.max_polygons * polygon_slot_size(self.max_polygon_vertices)
 
+    @property
+    def time_offsets(self) -> np.ndarray:
+        """Where each slot's stamp - t_0 sits in the slot vector: the one entry a region set's slots change by as
+        time passes (a moving region's position is predicted from it; core/sample/feedback.py follows these)."""
+        ellipses = np.arange(self.max_ellipses) * ELLIPSE_SLOT_SIZE + ELLIPSE_MOTION + 2
+        width = polygon_slot_size(self.max_polygon_vertices)
+        polygons = self.max_ellipses * ELLIPSE_SLOT_SIZE + np.arange(self.max_polygons) * width + \
+            POLYGON_SLOT_HEADER - 1
+        return np.concatenate([ellipses, polygons]).astype(int)
+
     def pack(self, regions: Sequence[Region], output_frame_available: bool = True, now: float | None = None,
              predict: bool = True) -> np.ndarray:
         """All regions -> the flat slot parameter vector (inactive slots are zeros).

@@ -92,7 +92,8 @@ class FeedbackLaws:
         self._cost_jacobian: dict[int, ca.Function] = {}
         for nlp in nlps:
             n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
-            followed = np.concatenate([np.arange(n), np.arange(count - size, count)])  # x(0) and the slots
+            # x(0) and each slot's stamp - t_0 (what moves with time; a new region set is searched)
+            followed = np.concatenate([np.arange(n), count - size + nlp.slot_layout.time_offsets])
             self._sensitivity[id(nlp)] = KktSensitivity(nlp.problem, followed)
             w, p = nlp.problem["x"], nlp.problem["p"]
             terms = ca.vertcat(*nlp.terms.function(w, p))  # V_o, V_a, tracking
