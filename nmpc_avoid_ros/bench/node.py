@@ -11,7 +11,7 @@ waits for the command, integrates one sample and publishes the next state. Measu
   the solver build and the first, cold-start solve), with an empty solver cache (cold: generate
   and compile) and again with the cache it left (warm); `ready_s`: from starting the process
   to the node's "controller ready" line (imports, parameters, solver build); `build_s`: the
-  solver build alone, as the node logs it.
+  solver build alone. Both from the node's diagnostics (solver_build_s, ready_time), else its log.
 
 The graph is isolated: its own ROS_DOMAIN_ID, localhost discovery, logs in a temp folder; the
 node runs in its own process group and is stopped by PID.
@@ -101,6 +101,8 @@ class _PlantProbe:
         self.state_pub = self.node.create_publisher(Float64MultiArray, "state", STREAM_QOS)
         self.commands: list[tuple[float, np.ndarray]] = []
         self.latencies: list[float] = []
+        #: the node's start-up values from its diagnostics (solver_build_s, ready_time); empty from an older node
+        self.startup: dict[str, float] = {}
         self.node.create_subscription(Float64MultiArray, "command",
                                       lambda m: self.commands.append((time.perf_counter(), np.array(m.data))),
                                       STREAM_QOS)
@@ -111,6 +113,7 @@ class _PlantProbe:
             values = {kv.key: kv.value for kv in status.values}
             if "step_latency_ms" in values and values.get("status") not in (None, ""):
                 self.latencies.append(float(values["step_latency_ms"]))
+            self.startup.update({k: float(values[k]) for k in ("solver_build_s", "ready_time") if k in values})
 
     def publish(self, x: np.ndarray) -> float:
         msg = self.msg_type()
@@ -145,6 +148,7 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
     x = np.array([-5.0, 0.0])
     started = time.perf_counter()
     spawned = time.time()
+    probe.startup.clear()  # this node's start-up only
     proc = NodeProcess("controller", args, isolated_env(domain, tmp / "ros_logs"), tmp / "logs")
     try:
         # re-send x0 until the first command: discovery and the solver build happen meanwhile
@@ -158,11 +162,8 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
             if probe.wait_command(1, 0.05):
                 first = probe.commands[0][0] - started
         _drain(probe, 1.0)  # the answers to the repeated x0 messages (and the node's log is flushed)
-        built = re.search(r"solver built in ([0-9.]+) s", proc.output())
-        # the node's own log stamp of "controller ready" (wall clock) against the spawn time
-        stamp = re.search(r"\[(\d+\.\d+)\] \[[^\]]*\]: controller ready", proc.output())
-        ready = float(stamp.group(1)) - spawned if stamp else None
-        build_s = float(built.group(1)) if built else None
+        build_s, ready = _startup(probe, proc.output())
+        ready = None if ready is None else ready - spawned
         progress(f"node start-up ({label} cache): solver built in {build_s} s, ready after {ready} s, "
                  f"{first:.2f} s to the first command")
         round_trips, missed = [], 0
@@ -182,13 +183,26 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
                 _idle(probe, pause)
         probe.executor.spin_once(timeout_sec=0.2)
         latencies = list(probe.latencies[-len(round_trips):]) if round_trips else []
-        return {"startup_s": round(first, 3), "build_s": build_s,
+        return {"startup_s": round(first, 3), "build_s": None if build_s is None else round(build_s, 3),
                 "ready_s": None if ready is None else round(ready, 3), "round_trip_ms": round_trips,
                 "step_latency_ms": latencies,
                 "missed": missed, "samples": samples}
     finally:
         proc.stop()
         _drain(probe, 0.5)  # nothing of this node may count for the next start
+
+
+def _startup(probe: _PlantProbe, log: str) -> tuple[float | None, float | None]:
+    """(solver build s, wall-clock time.time() of "controller ready") from the node's diagnostics; from its
+    log lines ("solver built in X s", the stamp of "controller ready") for a node that does not publish them."""
+    build_s, ready = probe.startup.get("solver_build_s"), probe.startup.get("ready_time")
+    if build_s is None:
+        built = re.search(r"solver built in ([0-9.]+) s", log)
+        build_s = float(built.group(1)) if built else None
+    if ready is None:
+        stamp = re.search(r"\[(\d+\.\d+)\] \[[^\]]*\]: controller ready", log)
+        ready = float(stamp.group(1)) if stamp else None
+    return build_s, ready
 
 
 def _idle(probe: _PlantProbe, seconds: float) -> None:

@@ -185,8 +185,8 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
             f"solver={s.solver} mu={s.mu:g} kappa={s.kappa:g} keep_in={list(s.keep_in)} "
             f"mode={'lockstep' if self.lockstep else 'timer'} "
             f"target={None if self.target is None else self.target.tolist()} "
-            f"solver built in {self.build_seconds:.2f} s{self._cache_note()}"
-        )
+            f"solver built in {self.build_seconds:.2f} s{self._cache_note()}")
+        self.startup = {"solver_build_s": f"{self.build_seconds:.6f}", "ready_time": f"{time.time():.6f}"}
 
     def reset_loop(self) -> None:
         """Forget the measured state: after (re)activation the loop waits for a fresh one."""
@@ -487,7 +487,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
                   "mismatch_error": f"{self.controller.memory.mismatch.last_error:.6g}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
                   "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected,
-                  **self.ledger.values(), **self.goal_values(),
+                  **self.ledger.values(), **self.goal_values(), **self.startup,
                   **({"state_depth": f"{a.state_depth:.6g}", "plan_depth": f"{a.plan_depth:.6g}"}
                      if (a := self.last_alarm) else {})}
         msg = diagnostic_array(self.get_fully_qualified_name(), self.get_clock().now().to_msg(), level, message,
