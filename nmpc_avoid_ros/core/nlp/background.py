@@ -48,6 +48,9 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from .child_process import die_with_parent
+from .codegen import announce_compile, compiled_library, library_path, prepare_folder
+
 log = logging.getLogger(__name__)
 
 #: the compile processes' niceness: the controller's own process comes first on a busy machine
@@ -104,6 +107,17 @@ def interpreted_until_compiled(key: str, library: Path, plugin: str, nlp: dict, 
         if _first_handed_out is None:
             _first_handed_out = time.perf_counter()
     return solver
+
+
+def interpreted_while_compiling(key: str, folder: Path, plugin: str, nlp: dict, opts: dict) -> ca.Function | None:
+    """None when the library of `key` is cached; else the solver of `nlp`, interpreted, while its library
+    compiles in a background process (core/nlp/background.py swaps it in between samples)."""
+    library = library_path(key, folder)
+    if library.exists():
+        return None
+    prepare_folder(folder)  # a missing compiler or cache folder is a configuration error now, not in the background
+    announce_compile(folder, background=True)
+    return interpreted_until_compiled(key, library, plugin, nlp, opts)
 
 
 def pending(library: Path) -> Job | None:
@@ -220,9 +234,6 @@ def _compile_in_child(job: Job) -> str:
 
 def compile_job(path: str, parent: int) -> None:
     """The compile process: read (key, folder, plugin, problem, options) from `path`, compile the library."""
-    from .codegen import compiled_library
-    from .worker import die_with_parent
-
     def stop(signum: int, frame: object) -> None:
         raise SystemExit(128 + signum)  # unwinds: the compiler is killed, the temporary folder removed
 

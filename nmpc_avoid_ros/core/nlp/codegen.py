@@ -11,7 +11,7 @@ A first start compiles (nothing in the cache for this structure): the first comp
 logs once, on the `logging` logger of this module, that it compiles, about how long it takes and
 where the cache is; the nodes pass core's log records on to the ROS log (nodes/runner.py). With the
 setting codegen_background: true the compile runs in a background process while interpreted solvers
-serve (`interpreted_while_compiling`, core/nlp/background.py); by default here, before the
+serve (core/nlp/background.py `interpreted_while_compiling`); by default here, before the
 constructor returns.
 """
 
@@ -88,7 +88,7 @@ def library_path(key: str, folder: Path) -> Path:
     return folder / f"nmpc_{key}.so"
 
 
-def _prepare(folder: Path) -> str:
+def prepare_folder(folder: Path) -> str:
     """The compiler ($CC, default cc), after checking that it exists and that `folder` can be created."""
     compiler = os.environ.get("CC", "cc")
     if shutil.which(compiler) is None:
@@ -116,7 +116,7 @@ def compiled_function(function: ca.Function, folder: Path) -> ca.Function:
     Pol NLP); compiled at once on a miss (about a second)."""
     library, name = function_library(function, folder), function.name()
     if not library.exists():
-        compiler = _prepare(folder)
+        compiler = prepare_folder(folder)
         with tempfile.TemporaryDirectory(dir=folder) as tmp:
             cwd = os.getcwd()
             os.chdir(tmp)  # generate writes into the working directory
@@ -132,39 +132,21 @@ def compiled_function(function: ca.Function, folder: Path) -> ca.Function:
     return ca.external(name, str(library))
 
 
-def interpreted_while_compiling(key: str, folder: Path, plugin: str, nlp: dict, opts: dict) -> ca.Function | None:
-    """None when the library of `key` is cached; else the solver of `nlp`, interpreted, while its library
-    compiles in a background process (core/nlp/background.py swaps it in between samples)."""
-    from .background import interpreted_until_compiled
-
-    library = library_path(key, folder)
-    if library.exists():
-        return None
-    _prepare(folder)  # a missing compiler or cache folder is a configuration error now, not in the background
-    announce_compile(folder, background=True)
-    return interpreted_until_compiled(key, library, plugin, nlp, opts)
-
-
 def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Function],
                      own_group: bool = False) -> tuple[Path, bool]:
     """Path of the compiled oracle library for `key` and whether it came from the cache.
 
     On a miss, `make_solver()` builds the symbolic solver whose oracles are generated and compiled
     with $CC (default cc) and COMPILE_FLAGS; the library is moved into place atomically, so concurrent
-    processes never load a half-written file. A background compile of the same library in this
-    process (core/nlp/background.py) is waited for instead of repeated. `own_group`: the compiler runs
+    processes never load a half-written file (a caller with a background compile of the same library in
+    flight waits for it first: core/nlp/background.py `pending`). `own_group`: the compiler runs
     in a process group of its own, killed when this call ends by an exception (the background compile
     process, whose compiler would otherwise outlive it when the process that started it ends).
     """
-    from .background import pending
-
     library = library_path(key, folder)
-    job = pending(library)
-    if job is not None:
-        job.done.wait()
     if library.exists():
         return library, True
-    compiler = _prepare(folder)
+    compiler = prepare_folder(folder)
     announce_compile(folder)
     solver = make_solver()
     with tempfile.TemporaryDirectory(dir=folder) as tmp:

@@ -371,15 +371,18 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
     if not settings.codegen:
         return ca.nlpsol("nmpc", plugin, nlp, opts), {"codegen": False, "library": None, "cache_hit": None,
                                                       "background": False}
-    from .codegen import cache_dir, compiled_library, interpreted_while_compiling, library_path, structure_hash
+    from .codegen import cache_dir, compiled_library, library_path, structure_hash
 
     key = structure_hash(f"{plugin}:{path}", nlp)
     folder = cache_dir(settings.cache_dir)
     if settings.codegen_background:
-        solver = interpreted_while_compiling(key, folder, plugin, nlp, opts)
+        solver = background.interpreted_while_compiling(key, folder, plugin, nlp, opts)
         if solver is not None:
             return solver, {"codegen": True, "library": str(library_path(key, folder)), "cache_hit": False,
                             "background": True}
+    job = background.pending(library_path(key, folder))  # compiling in the background: wait for it, not again
+    if job is not None:
+        job.done.wait()
     library, hit = compiled_library(key, folder, lambda: ca.nlpsol("nmpc", plugin, nlp, opts))
     return ca.nlpsol("nmpc", plugin, str(library), opts), {"codegen": True, "library": str(library), "cache_hit": hit,
                                                            "background": False}

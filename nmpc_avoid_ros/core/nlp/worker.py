@@ -35,7 +35,6 @@ A sample's calls thus all run the same solvers; a swap costs the sample one fork
 
 from __future__ import annotations
 
-import ctypes
 import math
 import mmap
 import os
@@ -52,6 +51,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from . import background
+from .child_process import die_with_parent
 
 
 class Solvable(Protocol):
@@ -79,16 +79,6 @@ REQUEST = struct.Struct("<IB")
 #: ~0.1 ms on this VM, twice per call (BENCHMARKS.md); polling costs a core for at most this long
 SPIN_SECONDS = 2e-3
 
-_PR_SET_PDEATHSIG = 1
-
-
-def die_with_parent(sig: int = signal.SIGKILL) -> None:
-    """Ask Linux to send `sig` to this (child) process when its parent (the thread that forked it) ends;
-    a no-op elsewhere."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, sig, 0, 0, 0)
-    except (OSError, AttributeError):
-        pass
 
 
 class SolveWorker:
