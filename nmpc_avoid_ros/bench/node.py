@@ -35,7 +35,7 @@ from ..tools.processes import NodeProcess, isolated_env
 
 #: node parameters of the measured controller: the fast path, compiled, solving on each state
 NODE_PARAMETERS = {"solver": "sqp", "codegen": "true", "lockstep": "true", "max_ellipses": "0",
-                   "max_polygons": "0", "target": "[5.0]"}
+                   "max_polygons": "0", "ellipse_tiers": "[]", "target": "[5.0]"}
 
 
 def _stats(values: list[float]) -> dict[str, float]:
