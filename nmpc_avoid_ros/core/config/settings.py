@@ -137,6 +137,11 @@ class ControllerSettings:
         0.0, "IPOPT and FATROP stop at an acceptable point: a KKT error below this for ACCEPTABLE_ITERATIONS "
              "iterations in a row (their acceptable_tol / tol_acceptable); 0: off. A solver option, fixed at "
              "construction (docs/design.md, 'Acceptable points')", low=0.0)
+    input_rate_max: tuple[float, ...] = setting(
+        (), "largest change of each input per second (m values, units/s; inf: none), e.g. a robot's acceleration "
+            "limits: the plan keeps |u(0) - u_prev| and |u(j) - u(j-1)| within input_rate_max * sample_time, u_prev "
+            "the command in force (none yet: u(0) is free); the fallbacks' inputs are not limited. Empty: off. The "
+            "multiple-shooting (ipopt) path", low=0.0, low_open=True, finite=False)
     feedback: bool = setting(
         False, "answer a sample from the plan prepared for it: a caller that calls prepare() after each command gets "
                "the next sample's problem solved ahead for the predicted state, and the command from its first-order "

@@ -75,7 +75,7 @@ class ProblemParts:
 
     Attributes:
         par: the parameter vector (see `parameters` for its order), and its pieces x0, y_t,
-            kappa, mu, q, r, keep_active, slot_par.
+            kappa, mu, q, r, keep_active, u_prev and rate_on (input_rate_max), slot_par.
         avoidance: (x [n], u [m], elapsed s) -> active * g of every keep-in expression and obstacle
             slot [n_depth] (> 0 inside a region to avoid), moving obstacles taken `elapsed` s after
             x(0): stage k at k Ts, and the steady state x_a (= x(N)) at N Ts.
@@ -104,6 +104,8 @@ class ProblemParts:
     slot_layout: SlotLayout
     output_frame_available: bool
     closed_form: bool
+    u_prev: ca.SX  # [m] the command in force, with input_rate_max (else empty)
+    rate_on: ca.SX  # [1] 1 when there is one (else empty)
 
 
 def keep_in_bends(expressions: list[ca.SX], x: ca.SX, u: ca.SX) -> np.ndarray:
@@ -125,6 +127,9 @@ def check_sizes(settings: ControllerSettings, model: Model) -> None:
                        ("input_max", model.m), ("state_weights", model.n), ("input_weights", model.m)):
         if len(getattr(settings, name)) != size:
             raise ConfigError(f"{name} needs {size} values for model {model.name}, got {len(getattr(settings, name))}")
+    if settings.input_rate_max and len(settings.input_rate_max) != model.m:
+        raise ConfigError(f"input_rate_max needs {model.m} values for model {model.name} (or none: off), got "
+                          f"{len(settings.input_rate_max)}")
     if max(settings.plane) >= model.n:
         raise ConfigError(f"plane {settings.plane} indexes beyond the {model.n} states of {model.name}")
 
@@ -151,7 +156,10 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     r = ca.SX.sym("r", m)
     keep_active = ca.SX.sym("keep_active", len(keep_in))
     slot_par = ca.SX.sym("slots", slots.size)
-    par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, slot_par)
+    # with input_rate_max: the command in force u_prev [m] and whether there is one (the slots stay last)
+    u_prev = ca.SX.sym("u_prev", m if s.input_rate_max else 0)
+    rate_on = ca.SX.sym("rate_on", 1 if s.input_rate_max else 0)
+    par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, u_prev, rate_on, slot_par)
 
     def points(x, u):
         """(state-plane point, output-plane point or None) of x under u."""
@@ -174,7 +182,8 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
 
     return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, chord, hard_g, hard_uses_u,
                         len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
-                        output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None)
+                        output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None,
+                        u_prev, rate_on)
 
 
 def depth_function(parts: ProblemParts, model: Model) -> ca.Function:

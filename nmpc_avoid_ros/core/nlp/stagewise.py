@@ -90,6 +90,9 @@ class StagewiseNlp(NlpBase):
         self.settings = settings
         self.model = model or make_model(settings.model)
         check_sizes(settings, self.model)
+        if settings.input_rate_max:
+            raise ConfigError(f"input_rate_max couples the stages' inputs, which solver {settings.solver!r} does not "
+                              "take: use solver ipopt")
         if not (settings.use_closed_form_steady_state and self.model.steady_state is not None):
             raise ConfigError(f"solver {settings.solver!r} needs the closed-form steady state of the model "
                               "(use_closed_form_steady_state: true); use solver ipopt otherwise")

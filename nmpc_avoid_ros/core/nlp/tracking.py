@@ -75,9 +75,13 @@ class NlpBase:
     problem: dict
 
     def parameters(self, x0: np.ndarray, y_t: np.ndarray, slots: np.ndarray, *, kappa: float, mu: float,
-                   state_weights: np.ndarray, input_weights: np.ndarray, keep_in_active: np.ndarray) -> np.ndarray:
-        """Pack the parameter vector: x0 [n], y_t [p], kappa, mu, diag Q [n], diag R [m], keep-in flags, slots."""
-        return np.concatenate([x0, y_t, [kappa, mu], state_weights, input_weights, keep_in_active, slots])
+                   state_weights: np.ndarray, input_weights: np.ndarray, keep_in_active: np.ndarray,
+                   command: np.ndarray | None = None) -> np.ndarray:
+        """Pack the parameter vector: x0 [n], y_t [p], kappa, mu, diag Q [n], diag R [m], keep-in flags, with
+        input_rate_max the command in force [m] and 1 (None: zeros and 0, u(0) unlimited), slots."""
+        rate = [] if not self.settings.input_rate_max else \
+            [np.zeros(len(input_weights)), [0.0]] if command is None else [command, [1.0]]
+        return np.concatenate([x0, y_t, [kappa, mu], state_weights, input_weights, keep_in_active, *rate, slots])
 
     @property
     def parameter_count(self) -> int:
@@ -241,6 +245,14 @@ class TrackingNlp(NlpBase):
                     ubg += [0.0] * len(rows)
         depth.append(avoidance(states[N], u_a, N * ts))
         between.append([])
+        if s.input_rate_max:  # |u(j) - u(j-1)| <= rate Ts, u(-1) the command in force (rows where rate is finite)
+            limited = [i for i, rate in enumerate(s.input_rate_max) if np.isfinite(rate)]
+            step = np.array([s.input_rate_max[i] * ts for i in limited])
+            for j in range(N):
+                change = U[:, j] - U[:, j - 1] if j else parts.rate_on * (U[:, 0] - parts.u_prev)
+                g.append(change[limited])
+                lbg += list(-step)
+                ubg += list(step)
         # F = max(0, g)^2 is only C1, which costs IPOPT many iterations near region boundaries.
         # The smooth equivalent: slacks s >= 0, s >= g, cost s^2 (at the optimum s = max(0, g)).
         # Between samples a stage's slack also bounds g at its sub-step states: s = the worst of them.

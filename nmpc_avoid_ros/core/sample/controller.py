@@ -181,6 +181,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
             x, y_t, self.slot_values(time) if slots is None else slots, kappa=s.kappa, mu=s.mu,
             state_weights=np.asarray(s.state_weights, float),
             input_weights=np.asarray(s.input_weights, float), keep_in_active=self._keep_in_active,
+            # in force while the plan's u(0) takes over (input_rate_max); none yet: the safe input the plant rests on
+            command=self.fallback.safe_input if self.memory.command is None else self.memory.command,
         )
 
     # -- the sample --------------------------------------------------------------------------

@@ -92,8 +92,11 @@ class FeedbackLaws:
         self._cost_jacobian: dict[int, ca.Function] = {}
         for nlp in nlps:
             n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
-            # x(0) and each slot's stamp - t_0 (what moves with time; a new region set is searched)
-            followed = np.concatenate([np.arange(n), count - size + nlp.slot_layout.time_offsets])
+            # x(0), the command in force (input_rate_max) and each slot's stamp - t_0 (what moves with time; a new
+            # region set is searched)
+            commands = np.arange(count - size - 1 - nlp.layout.m, count - size - 1) if nlp.settings.input_rate_max \
+                else np.zeros(0, int)
+            followed = np.concatenate([np.arange(n), commands, count - size + nlp.slot_layout.time_offsets])
             self._sensitivity[id(nlp)] = KktSensitivity(nlp.problem, followed)
             w, p = nlp.problem["x"], nlp.problem["p"]
             terms = ca.vertcat(*nlp.terms.function(w, p))  # V_o, V_a, tracking

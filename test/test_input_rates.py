@@ -1,0 +1,51 @@
+"""Input-rate limits (setting input_rate_max): a robot's acceleration limits in the plan, so that no command
+differs from the one in force by more than the limit times the sample time (issue: cmd_vel stepped from 0 to
+0.8 m/s and +-1.5 rad/s in one message)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
+from nmpc_avoid_ros.core.errors import ConfigError
+from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import FeedbackOutcome
+
+ROOT = Path(__file__).resolve().parents[1]
+UNICYCLE = ControllerSettings.from_params(load_params_file(ROOT / "config" / "unicycle.yaml").section("controller"))
+
+
+def steps(run, settings) -> np.ndarray:
+    """|u(k) - u(k-1)| per sample, from rest (the first command against zero)."""
+    return np.abs(np.diff(np.vstack([np.zeros(len(settings.input_weights)), run.u]), axis=0))
+
+
+@pytest.mark.parametrize("feedback", [False, True])
+def test_the_shipped_unicycle_never_steps_its_command_beyond_its_acceleration_limits(feedback):
+    settings = UNICYCLE.replace(feedback=feedback)
+    assert settings.input_rate_max == (1.0, 3.0)
+    controller = NmpcController(settings)
+    run = run_closed_loop(controller, [-4.0, -3.0, 0.0], [3.0, 2.0], 80, "continuous")
+    limit = np.array(settings.input_rate_max) * settings.sample_time
+    assert np.all(steps(run, settings) <= limit + 1e-6)  # from rest on, fallbacks included
+    assert np.linalg.norm(run.x[-1][:2] - [3.0, 2.0]) < 0.05  # and still gets there
+    if feedback:  # the law follows the command in force (a parameter that changes every sample)
+        assert sum(f == FeedbackOutcome.ANSWERED for f in run.feedback) >= 20
+
+
+def test_without_limits_the_first_command_jumps_to_the_input_bound():
+    settings = UNICYCLE.replace(input_rate_max=())
+    run = run_closed_loop(NmpcController(settings), [-4.0, -3.0, 0.0], [3.0, 2.0], 5, "continuous")
+    assert np.max(steps(run, settings)[:, 0]) > 0.5  # 0 -> 0.8 m/s, the issue's step
+
+
+def test_limits_need_one_value_per_input_and_the_multiple_shooting_path():
+    with pytest.raises(ConfigError, match="input_rate_max needs 2 values"):
+        NmpcController(UNICYCLE.replace(input_rate_max=(1.0,)))
+    vdp = ControllerSettings().replace(solver="fatrop", input_rate_max=(10.0,))
+    with pytest.raises(ConfigError, match="use solver ipopt"):
+        NmpcController(vdp)
