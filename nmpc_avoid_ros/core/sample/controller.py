@@ -54,6 +54,10 @@ from .step_result import Plan, StepResult, validate_vector
 TIME_BOUND_MARGIN = 0.05
 
 
+#: a preparation whose search took more than this share of the sample time builds no feedback law
+LAW_TIME_SHARE = 0.5
+
+
 class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
     """Avoidance-aware tracking NMPC (simplified scheme, paper section IV).
 
@@ -277,8 +281,14 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         nlp = self.active_nlp
         # an unconverged plan (e.g. FATROP stopped at an acceptable point) gets a law where its KKT residual allows
         # (with mu = 0 nothing is avoided: a penetrating plan is the problem's answer, as the guard holds)
-        law = self.feedback_laws.prepare(nlp, mem.plan, sample.par) if best.clear or s.mu == 0 else \
-            "the prepared plan penetrates"
+        # the law is built after a search that left half a sample at least (it takes ~2-30 ms: the next sample
+        # must not wait for it; without it that sample searches, warm-started from this plan)
+        if clock.perf_counter() - begin > LAW_TIME_SHARE * s.sample_time:
+            law = "no time left in the sample for the law"
+        elif best.clear or s.mu == 0:
+            law = self.feedback_laws.prepare(nlp, mem.plan, sample.par)
+        else:
+            law = "the prepared plan penetrates"
         mem.plan.age = -1  # the plan of the sample to come
         ready = not isinstance(law, str)
         costs = self.feedback_laws.costs(nlp, law.w, sample.par) if ready else None
