@@ -42,6 +42,8 @@ class Model:
             The initial guess of a cold start, and of a start at rest with the target behind
             (core/sample/warm_start.py): from rest no small change of the plan approaches a target behind
             such a model (turning alone does not move its output), so the solver would stay put.
+        rest: optional CasADi Function (x[n], u[m]) -> r[k] whose zeros are exactly the equilibria f(x, u) = 0 and
+            whose Jacobian has full row rank there; None: the dynamics themselves are (see `equilibrium`).
     """
 
     name: str
@@ -54,6 +56,7 @@ class Model:
     default_plane: tuple[int, int] = (0, 1)
     steady_guess: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
     turn_guess: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None
+    rest: ca.Function | None = None
 
     @property
     def n(self) -> int:
@@ -66,6 +69,17 @@ class Model:
     @property
     def p(self) -> int:
         return len(self.output_names)
+
+    def equilibrium(self, x: ca.SX | ca.MX, u: ca.SX | ca.MX) -> ca.SX | ca.MX:
+        """Rows r(x, u) = 0 that impose the equilibrium f(x, u) = 0 without a closed form (the NLP's (x_a, u_a),
+        paper eq. 8e; the target projection): the model's `rest` where it has one, else f itself.
+
+        Where f = 0 is degenerate, a solver needs `rest`: the unicycle's f = (v cos theta, v sin theta, omega)
+        vanishes at v = omega = 0, but its first two rows have the same gradient direction there (theta enters
+        multiplied by v), so the equality Jacobian loses rank at every equilibrium and IPOPT's step computation
+        fails near them (measured, config/unicycle.yaml on the continuous plant: 27 % of the samples unconverged,
+        138 of 800 with Error_In_Step_Computation; with `rest` = (v, omega): every sample Solve_Succeeded)."""
+        return (self.rest or self.dynamics)(x, u)
 
     def discrete(self, sample_time: float, method: str = "euler", steps: int = 1) -> ca.Function:
         """Discrete map (x[n], u[m]) -> x(k+1)[n] over one sample of `sample_time` s, in `steps`
@@ -197,8 +211,11 @@ def unicycle() -> Model:
     def near_rest(y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.array([y[0], y[1], x[2]], float), np.zeros(2)
 
+    # the equilibria are v = omega = 0 at any pose: imposed as those two rows, regular everywhere (Model.equilibrium)
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 2)
+    rest = ca.Function("unicycle_rest", [x, u], [u], ["x", "u"], ["r"])
     return Model("unicycle", ("x", "y", "theta"), ("v", "omega"), ("px", "py"), dyn, hout, None, (0, 1),
-                 steady_guess=near_rest, turn_guess=unicycle_turn_guess)
+                 steady_guess=near_rest, turn_guess=unicycle_turn_guess, rest=rest)
 
 
 #: m: a target nearer than this is not turned towards (parked a little past a goal, the robot stays put)
