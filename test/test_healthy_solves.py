@@ -24,8 +24,6 @@ from nmpc_avoid_ros.core.sample.status import StepStatus
 
 UNICYCLE = ROOT / "config" / "unicycle.yaml"
 #: why the NLP-level tests wait: core/nlp/tracking.py (owned elsewhere now) still imposes f(x_a, u_a) = 0
-WAITS_FOR_TRACKING = ("core/nlp/tracking.py still imposes f(x_a, u_a) = 0 for a model without a closed form; with "
-                      "`rest = mdl.equilibrium(x_a, u_a)` there (issue 33 item 5) this passes: drop the marker")
 
 
 def unicycle_settings(**changes) -> ControllerSettings:
@@ -69,7 +67,6 @@ def test_the_unicycle_dynamics_alone_are_degenerate_at_rest():
         assert jacobian_rank(model.dynamics(x, u), ca.vertcat(x, u), np.array([1.0, 2.0, theta, 0.0, 0.0])) == (2, 3)
 
 
-@pytest.mark.xfail(strict=True, reason=WAITS_FOR_TRACKING)
 def test_the_unicycle_nlp_equality_rows_are_regular_at_a_resting_plan():
     nlp = TrackingNlp(unicycle_settings())
     layout, problem = nlp.layout, nlp.problem
@@ -86,7 +83,6 @@ def test_the_unicycle_nlp_equality_rows_are_regular_at_a_resting_plan():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=WAITS_FOR_TRACKING)
 def test_the_unicycle_solves_every_sample_and_its_first_command_after_a_goal_moves_it():
     """At rest, then a new goal (ahead, aside, behind): on the continuous plant with the shipped 0.15 s budget every
     sample converges and the first command after the goal moves the robot (before: a third unconverged, cold solves

@@ -44,7 +44,8 @@ class TargetProjection:
         n, m, lam = model.n, model.m, settings.steady_state_scale
         x, u, y_t = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("y_t", model.p)
         hard = problem_parts(settings, model).hard_g(x / lam, u / lam)
-        g = ca.vertcat(model.dynamics(x, u), hard)
+        rest = model.equilibrium(x, u)  # rows of full rank at rest (the unicycle's dynamics lose rank there)
+        g = ca.vertcat(rest, hard)
         self._output = ca.Function("projection_output", [x, u], [model.output(x, u)])
         problem = {"x": ca.vertcat(x, u), "p": y_t, "f": ca.sumsqr(model.output(x, u) - y_t), "g": g}
         self._stop_at = StopAt(n + m, g.numel(), model.p, "projection_stop_at")
@@ -56,8 +57,8 @@ class TargetProjection:
         self.solver_builds = 1
         self._lbx = lam * np.array([*settings.state_min, *settings.input_min], float)
         self._ubx = lam * np.array([*settings.state_max, *settings.input_max], float)
-        self._lbg = np.concatenate([np.zeros(n), np.full(hard.numel(), -np.inf)])
-        self._ubg = np.zeros(n + hard.numel())
+        self._lbg = np.concatenate([np.zeros(rest.numel()), np.full(hard.numel(), -np.inf)])
+        self._ubg = np.zeros(rest.numel() + hard.numel())
         self._n = n
         # the origin's steady state lies in lambda Z (Z contains the origin): a feasible first guess
         self._start = np.clip(np.zeros(n + m), self._lbx, self._ubx)
