@@ -40,7 +40,7 @@ from ..problem.regions import Region
 from .answers import SampleAnswers
 from .candidates import EscapeGuesses, Guess
 from .fallback import FallbackSelector
-from .feedback import FeedbackLaws, Prepared
+from .feedback import ANSWERED_STATUS, FeedbackLaws, Prepared
 from .latency import LatencyPrediction
 from .memory import Sample, SampleMemory
 from .passage import Passage
@@ -312,7 +312,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         costs = plan.costs if prepared.costs is None else prepared.costs.at(w, sample.par)  # the certificate's V_N
         self.memory.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, plan.lam_x, plan.lam_g,
                                 0, costs)
-        result = self._result(self.memory.plan, sample.x, 0, StepStatus.OK, "feedback", 0, False)
+        result = self._result(self.memory.plan, sample.x, 0, StepStatus.OK, ANSWERED_STATUS, 0, False)
         result.horizon, result.feedback = nlp.layout.horizon, outcome
         result.search = SearchReport(phase="feedback", kept="prepared")
         result.feedback_time = sample.seconds = clock.perf_counter() - sample.begin

@@ -39,6 +39,9 @@ from .step_result import Plan
 
 log = logging.getLogger(__name__)
 
+#: the solver status of a sample its prepared plan answered: no solver ran in it (its preparation's did)
+ANSWERED_STATUS = "feedback"
+
 #: the largest constraint violation of a moved plan (state and region-function units): its gaps are second
 #: order in the state's distance from the predicted one (1e-5 for a 2e-3 miss on the paper's plant), far
 #: below the penetration tolerance VIOLATION_TOLERANCE, and its first input is clipped into the input box

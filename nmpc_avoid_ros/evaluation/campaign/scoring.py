@@ -55,6 +55,7 @@ from ...core.problem.models import Model
 from ...core.problem.regions import Region
 from ...core.sample.controller import NmpcController
 from ...core.sample.fallback import CANDIDATES as FALLBACK_CANDIDATES
+from ...core.sample.feedback import ANSWERED_STATUS
 from ...core.sample.status import StepStatus
 from .reachability import ReachableSet
 from .scenarios import Family, spec_ellipses
@@ -207,7 +208,8 @@ def solver_section(s: Scored) -> dict[str, Any]:
     return {
         "samples": K, "ok": run.status.count(StepStatus.OK), "truncated": run.status.count(StepStatus.TRUNCATED),
         "unconverged": run.status.count(StepStatus.UNCONVERGED),
-        "solver_failures": int(sum(st not in SOLVED for st in run.solver_status)),
+        # a sample its prepared plan answered ran no solver (its preparation did, and converged): not a failure
+        "solver_failures": int(sum(st not in SOLVED and st != ANSWERED_STATUS for st in run.solver_status)),
         "fallbacks": int(sum(fallbacks.values())), "fallback_kinds": fallbacks,
         "initial_feasible": bool(usable[0]),
         "x0_in_feasible_set": "feasible" if usable[0] else start_feasibility(s.probe, s.spec["x0"], s.y_t),
