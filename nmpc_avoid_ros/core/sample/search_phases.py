@@ -52,10 +52,15 @@ class SearchPhases:
         if best is None or mem.passage:
             return best, last
         penetrating = s.mu > 0 and self.escape.available and best.depth > VIOLATION_TOLERANCE
-        if penetrating or self._escape_due(best, previous_y_a, sample):
-            best = self._escape(sample, best, penetrating, report)
+        # the passage's guesses, once due, run to their end before the escape's wait counts down again: else a
+        # new escape cycle began after ESCAPE_RETRY_SAMPLES searches (fewer with feedback's two searches a
+        # sample) and its vain end restarted the passage at its first guess, so later ones were never tried
+        if penetrating:
+            best = self._escape(sample, best, True, report)
         elif mem.passage_due:
             best = self._try_passage(sample, best, previous_y_a, report)
+        elif self._escape_due(best, previous_y_a, sample):
+            best = self._escape(sample, best, False, report)
         return best, last
 
     def _regular_starts(self, sample: Sample) -> tuple[list[Start], str]:
