@@ -8,8 +8,9 @@ assumed, and the plant left the box by 4e-3), so commands leave one sample apart
 plan was predicted for is the instant the command leaves; a solve that takes longer publishes at once
 and is counted (`late_commands`). With 0 the command leaves at once and the prediction uses the median of the last
 LATENCY_WINDOW samples' start-to-publish times. A sample answered by its prepared plan (core/sample/feedback.py)
-is never held: its command leaves at once, predicted from the median of the last such samples' times, kept
-apart. Lockstep never predicts: its plant waits for the command.
+is held like any other (every plan assumes the last command in force until the hold); with command_latency 0 it
+leaves at once, predicted from the median of the last such samples' times, kept apart. Lockstep never predicts:
+its plant waits for the command.
 """
 
 from __future__ import annotations
@@ -69,10 +70,7 @@ class CommandTiming:
                answered: bool = False) -> None:
         """A command left `latency` s after its sample started, `waited` s of it held back, for a hold of `hold`
         s of a `command_latency` (late when it left after the hold, or had nothing left to hold); `answered`: a
-        prepared plan answered it, never held."""
-        if answered:
-            self.answered.append(latency)
-            return
-        self.latencies.append(latency - waited)
+        prepared plan answered it (its time is kept apart: with no hold it leaves at once)."""
+        (self.answered if answered else self.latencies).append(latency - waited)
         if command_latency > 0 and (hold <= 0 or latency > hold + LATE_COMMAND_SLACK):
             self.late_commands += 1

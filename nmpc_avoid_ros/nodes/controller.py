@@ -412,20 +412,20 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         # real time: the state is state_age old now and the command leaves a solve later (core/sample/latency.py)
         compensate = self.options.latency_compensation and not self.lockstep
         self.cover_hold = self.options.command_latency if compensate else 0.0
-        # counted from the timer's tick, not from this callback: commands leave one sample apart (command_timing.py);
-        # a prepared plan's answer leaves at once (core/sample/feedback.py)
+        # held from the timer's tick (command_timing.py), a prepared plan's answer too: each plan assumes the last
+        # command in force until then (one sent at once, then a searched one held: |x2| 2.12 through DDS)
         hold = self.timing.hold_after_tick(self.cover_hold, since_tick)
         ahead = self.timing.predicted(self.state_age, hold) + self.options.transport_delay if compensate else 0.0
-        quick = self.timing.predicted(self.state_age, 0.0, True) + self.options.transport_delay if compensate else 0.0
+        quick = self.timing.predicted(self.state_age, 0.0, True) + self.options.transport_delay \
+            if compensate and not self.cover_hold else ahead
         result = self.controller.step(self.state, self.target, time=self.state_time, latency=quick,
                                       search_latency=ahead,
                                       command=self.last_command if compensate and self.last_result else None)
         self.state_solved, self.fresh_state, self.last_result = True, False, result
-        answered = result.feedback is FeedbackOutcome.ANSWERED
-        waited = 0.0 if answered else self.timing.hold_until(started, hold)  # the instant the plan was predicted for
+        waited = self.timing.hold_until(started, hold)  # the instant the plan was predicted for
         self.send_command(*self.goal_command(result))  # the late cover's inputs; zeros while the goal holds
         latency = time.perf_counter() - started
-        self.timing.record(latency, waited, hold, 0.0 if answered else self.cover_hold, answered)
+        self.timing.record(latency, waited, hold, self.cover_hold, result.feedback is FeedbackOutcome.ANSWERED)
         if compensate:
             self.controller.command_sent(self.state_time + self.state_age + latency + self.options.transport_delay)
         if result.is_fallback:
