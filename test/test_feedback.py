@@ -82,7 +82,7 @@ def test_the_prepared_loop_is_the_searched_loop_without_a_solver_call_in_most_sa
     answered = [r for r in prepared.outcomes if r.feedback is FeedbackOutcome.ANSWERED]
     assert len(answered) >= 0.8 * len(prepared.outcomes)
     for result in answered:  # no solver ran in the sample; its preparation did, between the samples
-        assert result.search.phase == "feedback" and not result.search.tried
+        assert result.solver_status == "feedback" and result.search.tried  # the preparation's search, ahead
         assert 0 < result.feedback_time < result.solve_time and result.preparation_time > 0
         assert result.iterations == 0 and str(result.status) == "ok"
     assert all(r.feedback is None and not r.preparation_time for r in searched.outcomes)

@@ -293,7 +293,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         ready = not isinstance(law, str)
         costs = self.feedback_laws.costs(nlp, law.w, sample.par) if ready else None
         mem.prepared = Prepared(mem.plan, nlp, law if ready else None, "" if ready else law, x, start, delay,
-                                clock.perf_counter() - begin, costs)
+                                clock.perf_counter() - begin, costs, report)
         return mem.prepared
 
     def _feedback(self, sample: Sample, prepared: Prepared) -> StepResult | None:
@@ -314,7 +314,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
                                 0, costs)
         result = self._result(self.memory.plan, sample.x, 0, StepStatus.OK, ANSWERED_STATUS, 0, False)
         result.horizon, result.feedback = nlp.layout.horizon, outcome
-        result.search = SearchReport(phase="feedback", kept="prepared")
+        # what was searched for this sample, ahead of it (escapes and passage included: the campaign counts them)
+        result.search = prepared.report or SearchReport(phase="feedback", kept="prepared")
         result.feedback_time = sample.seconds = clock.perf_counter() - sample.begin
         return result
 

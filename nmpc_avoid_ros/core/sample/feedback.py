@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..nlp.buffered import Buffered
 from ..nlp.codegen import compiled_function, function_library
-from ..nlp.search import VIOLATION_TOLERANCE
+from ..nlp.search import VIOLATION_TOLERANCE, SearchReport
 from ..nlp.sensitivity import FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
 from .status import FeedbackOutcome
@@ -80,6 +80,7 @@ class Prepared:
     delay: float
     seconds: float
     costs: LinearCosts | None = None
+    report: SearchReport | None = None  # what the preparation's search did (the answered sample's `search`)
 
 
 class FeedbackLaws:
