@@ -57,11 +57,9 @@ BUDGET_EXHAUSTED = frozenset({"Maximum_Iterations_Exceeded", "Maximum_WallTime_E
 class NlpBase:
     """What the controller needs from any formulation (multiple shooting or stage-wise).
 
-    Subclasses set: layout (split_w/join_w, horizon, n_keep_in, n_w), solver, solver_info
-    (see make_solver), lbx, ubx, lbg,
-    ubg, terms (w, p) -> (V_o, V_a, tracking), steady (w) -> (x_a, u_a), constraint_values
-    (w, p) -> g, slot_layout, output_frame_available, and `_slack_index` with `_slack_value`
-    (w, p) -> max(0, depth) in the order of the slack variables.
+    Subclasses set: layout (split_w/join_w, horizon, n_keep_in, n_w), solver, solver_info (see make_solver), lbx,
+    ubx, lbg, ubg, terms (w, p) -> (V_o, V_a, tracking), steady (w) -> (x_a, u_a), constraint_values (w, p) -> g,
+    slot_layout, output_frame_available, problem, and `_slack_index` with `_slack_value` (w, p) -> max(0, depth).
     """
 
     settings: ControllerSettings
@@ -247,12 +245,11 @@ class TrackingNlp(NlpBase):
         between.append([])
         if s.input_rate_max:  # |u(j) - u(j-1)| <= rate Ts, u(-1) the command in force (rows where rate is finite)
             limited = [i for i, rate in enumerate(s.input_rate_max) if np.isfinite(rate)]
-            step = np.array([s.input_rate_max[i] * ts for i in limited])
+            step = np.array(s.input_rate_max)[limited] * ts
             for j in range(N):
                 change = U[:, j] - U[:, j - 1] if j else parts.rate_on * (U[:, 0] - parts.u_prev)
                 g.append(change[limited])
-                lbg += list(-step)
-                ubg += list(step)
+                lbg, ubg = lbg + list(-step), ubg + list(step)
         # F = max(0, g)^2 is only C1, which costs IPOPT many iterations near region boundaries.
         # The smooth equivalent: slacks s >= 0, s >= g, cost s^2 (at the optimum s = max(0, g)).
         # Between samples a stage's slack also bounds g at its sub-step states: s = the worst of them.
