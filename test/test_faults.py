@@ -91,8 +91,9 @@ def test_kill_9_and_restart_plant_controller_and_recorder_in_turn(ros_graph, tmp
     assert ctrl.alive() and rec.alive()
     # hold_steady: u_a of the last plan, and for van der Pol u_a = y_a (x_a = [y_a, 0])
     first_error = listen.diags.index(stale()[0])
-    last_ok = [d for d in listen.diags[:first_error] if d["level"] == OK_LEVEL and "status" in d][-1]
-    u_a = json.loads(last_ok["y_a"])[0]
+    # the last sample before the ERRORs, whatever its level (a WARN one, e.g. an alarm's, is the last plan too)
+    last_solved = [d for d in listen.diags[:first_error] if "status" in d][-1]
+    u_a = json.loads(last_solved["y_a"])[0]
     stale_commands = [json.loads(d["command"])[0] for d in stale()]
     assert stale_commands == pytest.approx([u_a] * len(stale_commands), abs=1e-9)
     x_last = states[-1][1]
