@@ -40,7 +40,7 @@ BACKGROUND = ["-p", "codegen_background:=true"]
 #: 7.4 s measured on an idle 2-core VM (Python, rclpy, the interpreted build, the first sample), 13 s with
 #: a test suite running beside it at nice 10; before the background compile: 98 s (the compile of 6 NLPs)
 FIRST_COMMAND_BOUND = 25.0
-#: s for the background compile of the live config's 6 libraries (~80 s on 2 cores)
+#: s for the first of the live config's 6 libraries to compile in the background (~15 s on 2 cores; all: ~80 s)
 COMPILE_LIMIT = 400.0
 
 
@@ -105,15 +105,19 @@ def test_a_first_start_on_an_empty_cache_commands_within_seconds_and_swaps_in_th
         assert first < FIRST_COMMAND_BOUND, ctrl.output()[-3000:]
         out = ctrl.output()
         assert "compiling the solver's generated code in the background" in out, out[-3000:]
-        assert probe.spin_until(lambda: "all compiled solvers in use" in ctrl.output(), COMPILE_LIMIT), \
+        # the first swap between samples, and the loop goes on (all six: test_first_start.py, offline; waiting for
+        # them here took 80 s of make test): stopped then, mid-compile, the controller leaves no job or build behind
+        assert probe.spin_until(lambda: "compiled solver(s) swapped in" in ctrl.output(), COMPILE_LIMIT), \
             ctrl.output()[-3000:]
-        swapped = time.monotonic() - started
-        swaps = [line for line in ctrl.output().splitlines() if "compiled solver(s) swapped in" in line]
-        print(f"all compiled solvers swapped in {swapped:.1f} s after the start ({len(swaps)} swaps)", *swaps, sep="\n")
+        print(f"first compiled solver swapped in {time.monotonic() - started:.1f} s after the start")
         heard = len(commands)
         assert probe.spin_until(lambda: len(commands) >= heard + 4, 10.0), ctrl.output()[-3000:]  # the loop goes on
-        assert len(list(cache.glob("nmpc_*.so"))) == 6, list(cache.iterdir())
+        assert list(cache.glob("nmpc_*.so")), list(cache.iterdir())
         assert "failed" not in ctrl.output(), ctrl.output()[-3000:]
     finally:
         assert ctrl.stop() == 0
-    assert not [p for p in cache.iterdir() if p.suffix != ".so"], list(cache.iterdir())  # no job or build left
+    leftovers = lambda: [p for p in cache.iterdir() if p.suffix != ".so"]  # noqa: E731
+    deadline = time.monotonic() + 10.0  # the compile process ends on its parent's end and removes its folder
+    while leftovers() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not leftovers(), list(cache.iterdir())  # no job or build left
