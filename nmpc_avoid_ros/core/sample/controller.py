@@ -104,11 +104,11 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
                                 self.model)
         self.passage = Passage(long_nlp, self.nlp, self.model, self.settings)
         self.fallback = FallbackSelector(self.nlp, self.model, self.settings)
-        #: the feedback laws of prepared plans (core/sample/feedback.py), with the `feedback` setting
+        #: the feedback laws of prepared plans (core/sample/feedback.py), with the `feedback` setting: for the
+        #: regular NLP (building them for the passage NLP too doubled a first start's 2 s: passage samples search)
         s = self.settings
-        self.feedback_laws = FeedbackLaws([nlp for nlp in (self.nlp, long_nlp) if nlp is not None],
-                                          cache_dir(s.cache_dir) if s.codegen else None, s.codegen_background) \
-            if s.feedback else None
+        self.feedback_laws = FeedbackLaws([self.nlp], cache_dir(s.cache_dir) if s.codegen else None,
+                                          s.codegen_background) if s.feedback else None
         # the regular NLP solved on the smallest ellipse tier that holds the regions (core/nlp/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
         self.tiered.set_regions(self._regions)  # no regions yet: the smallest tier

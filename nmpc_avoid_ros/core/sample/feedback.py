@@ -125,6 +125,8 @@ class FeedbackLaws:
 
     def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
         """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none."""
+        if id(nlp) not in self._sensitivity:
+            return "no law for this NLP (the passage mode's long one: its samples search)"
         layout = nlp.layout
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
         w = nlp.fill_slacks(layout.join_w(plan.inputs, plan.states[1:], plan.y_a, rest, x0=plan.states[0]), par)
