@@ -12,16 +12,16 @@ sensitivity (Fiacco 1976; the advanced-step NMPC of Zavala & Biegler 2009):
 
 with H the Hessian of the Lagrangian f + lam_g' g, A_a the Jacobian of the active constraints and
 bounds (equalities, inequalities at a bound) and dp the change of the parameters the law follows (the
-initial state x(0) and the obstacle slots, which move with time). The active set is read from the
+caller's columns: core/sample/feedback.py follows x(0), the command in force and each obstacle slot's
+stamp offset, what moves with time). The active set is read from the
 solution itself (a row within `ACTIVE_TOLERANCE` of a bound), so a plan solved on another NLP of the
 same problem (an ellipse tier, the reference) gets a law too; the multipliers solve the KKT system on
 that set (rows with a wrong-signed multiplier leave it), regularised so that dependent rows (a slack
 bounded by nine copies of the same row of an empty slot) share theirs.
 
 The law answers only where it is right: the active constraints keep the sign of their multipliers
-(else the active set changes: a QP, not this), and the corrected plan w + dw is feasible to the
-search's `feasibility_tolerance` and clear of the regions, both checked on the nonlinear problem at
-the new parameters. Elsewhere it answers None and the sample searches as before.
+(else the active set changes: a QP, not this); the caller checks the corrected plan w + dw on the
+nonlinear problem at the new parameters (core/sample/feedback.py). Elsewhere the sample searches.
 """
 
 from __future__ import annotations
@@ -66,12 +66,12 @@ class KktSensitivity:
         self._second = ca.Function("kkt_second", [w, p, lam], [ca.hessian(lagrangian, w)[0],
                                                                ca.jacobian(grad, p)[:, picked]])
 
-    def law(self, w: np.ndarray, par: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-            u0_index: np.ndarray) -> FeedbackLaw | str:
+    def law(self, w: np.ndarray, par: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+            ) -> FeedbackLaw | str:
         """The law at the solution w [n_w] of the NLP at parameters par, or why there is none (text for
         people: the active set read from w does not satisfy the KKT conditions, or the KKT matrix is singular).
 
-        bounds: (lbx, ubx, lbg, ubg) of the NLP; u0_index [m]: where u(0) sits in w.
+        bounds: (lbx, ubx, lbg, ubg) of the NLP.
         """
         begin = clock.perf_counter()
         lbx, ubx, lbg, ubg = bounds
@@ -121,7 +121,6 @@ class KktSensitivity:
         sign, scale, ineq = sign[keep], 1.0 + np.abs(lam), ~equality[keep]
         return FeedbackLaw(
             w=w.copy(), par=par.copy(), columns=self.columns, dw=np.asfortranarray(solution[:n_w]),
-            u0_index=np.asarray(u0_index, int),
             multiplier=(sign * lam / scale)[ineq], multiplier_change=np.asfortranarray(
                 (sign[:, None] * solution[n_w:] / scale[:, None])[ineq]),
             seconds=clock.perf_counter() - begin)
@@ -153,7 +152,7 @@ def _active(values: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> tuple[n
 class FeedbackLaw:
     """A prepared solution w [n_w] at parameters par and its first-order change dw = dw_dp @ dp.
 
-    columns: the parameters followed (indices into par); dw [n_w, len(columns)]; u0_index [m];
+    columns: the parameters followed (indices into par); dw [n_w, len(columns)];
     multiplier [k]: the active inequalities' multipliers, signed so that >= 0 keeps each active,
     scaled by 1 + |lam|; multiplier_change [k, len(columns)] their change; seconds: time to build it.
     """
@@ -162,7 +161,6 @@ class FeedbackLaw:
     par: np.ndarray
     columns: np.ndarray
     dw: np.ndarray
-    u0_index: np.ndarray
     multiplier: np.ndarray
     multiplier_change: np.ndarray
     seconds: float = 0.0

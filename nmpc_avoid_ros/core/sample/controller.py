@@ -363,7 +363,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         # the projection ends by the search's deadline too: every solver call of a sample by the one deadline
         y_t = self.project_target(y_t, end=begin + SEARCH_SHARE * self.sample_budget())
         sample = self._sample(x, y_t, start, begin, measured=measured, delay=delay, command=in_force)
-        sample.measured_at, sample.settled = time, self.memory.prepared is None
+        sample.measured_at = time  # (whether its mismatch bookkeeping waits for `prepare`: `step` sets `settled`)
         return sample
 
     def _sample(self, x: np.ndarray, y_t: np.ndarray, start: float | None, begin: float, *, measured: np.ndarray,

@@ -84,8 +84,8 @@ class Prepared:
 
 
 class FeedbackLaws:
-    """The KKT sensitivity of each NLP a plan is kept in (the regular and the passage NLP), and each one's
-    feasibility test of a moved plan; all built in the constructor (core/nlp/sensitivity.py)."""
+    """The KKT sensitivity of each NLP given (the controller gives its regular one), its feasibility test of a moved
+    plan and the Jacobians of its cost terms; all built in the constructor (core/nlp/sensitivity.py)."""
 
     def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None, background: bool = False) -> None:
         """`compiled_in`: the feasibility tests are compiled and cached there (core/nlp/codegen.py; None: not);
@@ -130,7 +130,7 @@ class FeedbackLaws:
         layout = nlp.layout
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
         w = nlp.fill_slacks(layout.join_w(plan.inputs, plan.states[1:], plan.y_a, rest, x0=plan.states[0]), par)
-        return self._sensitivity[id(nlp)].law(w, par, (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg), _first_input(layout))
+        return self._sensitivity[id(nlp)].law(w, par, (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg))
 
     def costs(self, nlp: NlpBase, w: np.ndarray, par: np.ndarray) -> LinearCosts:
         """The cost terms of the plan w at par, and their first-order change (for a moved plan's, cheaply)."""
@@ -168,11 +168,3 @@ def _violation_function(nlp: NlpBase) -> ca.Function:
         rows += [ca.DM(lower[low]) - values[low.tolist()], values[high.tolist()] - ca.DM(upper[high])]
     return ca.Function("violation", [w, p], [ca.mmax(ca.vertcat(*rows, 0))])
 
-
-def _first_input(layout) -> np.ndarray:
-    """Where u(0) [m] sits in w: the entries join_w fills from the first input alone."""
-    N, n, m, p = layout.horizon, layout.n, layout.m, layout.p
-    first = np.zeros((N, m))
-    first[0] = 1.0
-    rest = None if layout.closed_form else np.zeros(n + m)
-    return np.flatnonzero(layout.join_w(first, np.zeros((N, n)), np.zeros(p), rest))

@@ -53,6 +53,4 @@ class LatencyPrediction:
 
     def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """The state [n] dt s after x [n] under the input u [m] held (x itself for dt <= 0)."""
-        if dt <= 0.0:
-            return np.array(x, float)
-        return self._flow(x, u, dt)[0].copy()
+        return self.shift(x, u, dt) if dt > 0.0 else np.array(x, float)
