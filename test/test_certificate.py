@@ -105,6 +105,19 @@ def test_repeated_violations_escalate_from_warn_to_error():
     assert certificate.violations == sum(level != "ok" for level in levels)
 
 
+def test_a_target_out_of_reach_is_certified_on_the_problem_solved_its_projection():
+    """y_t = 8 is beyond the steady outputs in lambda Z (|y| <= 5.94): the NLP tracks its projection y*, and V_N is
+    that problem's cost, which goes to ~0 at y* (costed against y_t it would stay near kappa (8 - y*)^2 and wobble
+    by the solver's tolerance: the robot campaign's 214 'violations')."""
+    from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+
+    run = run_closed_loop(NmpcController(ControllerSettings(mu=0.0)), [-5.0, 0.0], np.array([8.0]), 50, "euler")
+    assert abs(run.x[-1][0] - 8.0) > 2.0  # out of reach: it stops at y*
+    assert [c["checked"] for c in run.certificate] == [False] + [True] * 49
+    assert sum(c["violated"] for c in run.certificate) == 0
+    assert run.certificate[-1]["value_function"] < 1e-3
+
+
 def test_a_moving_region_keeps_the_certificate_checked_and_met_on_the_nominal_model():
     """A moving ellipse that the loop brushes past, re-published every sample with its new stamp and pose (as
     an obstacle source does): the same trajectory, so Assumption P holds; the shifted candidate is costed with

@@ -192,7 +192,11 @@ class StabilityCertificate:
         if not np.all(np.isfinite(result.y_a)) or result.states.shape[0] != N + 1 or \
                 self.controller.nlp_of_horizon(N) is None:
             return self.skip(f"no plan of horizon {self.controller.nlp.layout.horizon} ({source})")
-        par = self.controller.parameters(result.states[0], y_t, time)
+        # V_N of the problem the sample solved: for a y_t out of reach, that of its projection y* (result.target);
+        # costed against the raw y_t, the offset of a plan settling onto y* moved V_N up and down by the solver's
+        # tolerance (214 "violations" in the robot campaign, whose goals are partly outside the box)
+        tracked = y_t if result.target is None else result.target
+        par = self.controller.parameters(result.states[0], tracked, time)
         value = self.plan_cost(result.states, result.inputs, result.y_a, result.x_a, result.u_a, par)
         # what must stay equal (Assumption P): the parameters but x(0) and the slots' time-dependent
         # packing, and the regions themselves (a moving one is the same trajectory while its
@@ -200,7 +204,7 @@ class StabilityCertificate:
         s = self.controller.settings
         key = (par[n:par.size - self.controller.nlp.slot_layout.size].copy(), self.controller.regions,
                s.predict_obstacles, s.region_margin, self.controller.mismatch_margin)
-        changed = what_changed(self._previous.key, key, time, len(y_t)) if self._previous is not None else ()
+        changed = what_changed(self._previous.key, key, time, len(tracked)) if self._previous is not None else ()
         previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:
             return self._unchecked(value, source, "first sample")
