@@ -277,7 +277,7 @@ def test_a_four_state_robot_bag_is_analysed_with_its_own_model(tmp_path):
     path = tmp_path / "mobile.mcap"
     with Ros2McapWriter(path) as bag:
         bag.add_metadata(PARAMETERS_RECORD, parameters_record(
-            "/controller", {**_settings_fields(settings), "target": [1.0, 0.0]}, 0))
+            "/controller", {**_settings_fields(settings), "target": [1.0, 0.0], "constraints": ["vx <= 0.5"]}, 0))
         for k in range(8):
             x = [min(0.25 * k, 1.0), 0.0, 1.0 if k < 4 else 0.0, 0.0]
             t = T0 + round(k * settings.sample_time * NS)
@@ -291,6 +291,9 @@ def test_a_four_state_robot_bag_is_analysed_with_its_own_model(tmp_path):
     # the keep-in vx^2 + vy^2 <= 1.44 on the recorded states: 1 - 1.44 at most
     (speed,) = metrics["clearance"]["recorded_states"]["keep_in"]
     assert speed["max_g"] == pytest.approx(1.0 - 1.44)
+    # a hard constraint of Z the bag's settings name, on the recorded states too: vx = 1 at the first four
+    (hard,) = metrics["clearance"]["recorded_states"]["constraints"]
+    assert (hard["expression"], hard["max_g"], hard["states_outside"]) == ("vx <= 0.5", pytest.approx(0.5), 4)
 
 
 @pytest.mark.parametrize("point, expected", [

@@ -181,7 +181,8 @@ def test_bad_moving_markers_are_refused_or_reset_with_a_reason_and_the_last_good
     for kwargs, verdict, reason in cases:
         send((9.0, 9.0), **kwargs)
         last = settle(0.8)
-        assert last["last_obstacle_issue"].startswith(f"{verdict} tracker/1") and reason in last["last_obstacle_issue"]
+        assert (last["last_obstacle_kind"], last["last_obstacle_marker"]) == (verdict, "tracker/1")
+        assert reason in last["last_obstacle_reason"]  # the reason for people names the cause
         assert int(last["rejected_inputs"]) == rejected + 1
         rejected += 1
         # the last good region stays in force and the controller keeps solving
@@ -196,7 +197,8 @@ def test_bad_moving_markers_are_refused_or_reset_with_a_reason_and_the_last_good
     assert moving["moving_regions"] == "1"
     send((40.0, 40.0), stamp=t0 + 0.4)
     jumped = settle(0.8)
-    assert jumped["last_obstacle_issue"].startswith("reset tracker/1") and "jumped" in jumped["last_obstacle_issue"]
+    assert (jumped["last_obstacle_kind"], jumped["last_obstacle_marker"]) == ("reset", "tracker/1")
+    assert "jumped" in jumped["last_obstacle_reason"]
     assert int(jumped["obstacle_resets"]) >= 1
     assert (jumped["regions"], jumped["moving_regions"]) == ("1", "0")
     assert ctrl.alive() and math.isfinite(float(jumped["solve_time_ms"]))

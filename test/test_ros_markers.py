@@ -391,6 +391,8 @@ def test_garbage_objects_never_raise() -> None:
     report = store.apply(fake, now=0.0)  # type: ignore[arg-type]
     assert report.applied == 1 and len(report.rejected) == 3
     assert all(reason for _, _, reason in report.rejected)
+    # the catch-all names them as malformed objects, and only them
+    assert report.malformed == [(ns, i) for ns, i, _ in report.rejected]
     assert store.apply(None, now=0.0).rejected  # type: ignore[arg-type]
 
 

@@ -76,10 +76,13 @@ def states_metrics(bag: Bag, run: RecordedRun, settings: ControllerSettings, mod
     entry: dict[str, Any] = {"topic": states.topic, "states": len(states.x), "rate_hz": states.rate_hz,
                              "skipped_messages": states.skipped, "span": states.notes, **pen,
                              "min_obstacle_distance": _finite_or_none(float(np.min(distance)))}
-    entry["keep_in"] = [{"expression": text, "max_g": float(np.max(keep[:, i])),
-                         "time": float(since[int(np.argmax(keep[:, i]))]),
-                         "states_outside": int(np.sum(keep[:, i] > 0))}
-                        for i, text in enumerate(settings.keep_in)]
+    # the keep-in expressions (penalised) and the hard constraints of Z, on what the plant did
+    hard = keep_in_values(settings, model, states.x, u, settings.constraints)
+    for key, values, texts in (("keep_in", keep, settings.keep_in), ("constraints", hard, settings.constraints)):
+        entry[key] = [{"expression": text, "max_g": float(np.max(values[:, i])),
+                       "time": float(since[int(np.argmax(values[:, i]))]),
+                       "states_outside": int(np.sum(values[:, i] > 0))}
+                      for i, text in enumerate(texts)]
     if model.name == "van_der_pol":  # the paper's energy-rate measure
         entry["max_abs_x1x2"] = max_abs_product(states.x)
     return entry, worst_g, distance

@@ -71,7 +71,7 @@ from ..ros.parameters import (
 from ..ros.qos import LatchedSubscription
 from .command_timing import CommandTiming
 from .controller_goal import GoalKeeping
-from .controller_inputs import InputLedger, JudgedInputs
+from .controller_inputs import InputLedger, JudgedInputs, ObstacleIssue
 from .controller_io import INTERFACES
 from .controller_threads import AlwaysAnswers, locked, move_to_group, transition
 from .controller_views import ControllerViews, diagnostic_array
@@ -148,7 +148,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
                                  output_frame_available=controller.nlp.output_frame_available,
                                  max_speed=s.max_obstacle_speed, max_stamp_skew=s.max_obstacle_stamp_skew,
                                  frame_aliases=self.io.marker_frame_aliases)
-        self.last_obstacle_issue = ""
+        self.obstacle_issue = ObstacleIssue()
         self.regions_revision = self.store.revision
         self.target: np.ndarray | None = None
         if self.options.target is not None:
@@ -174,7 +174,8 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         self.views = ControllerViews(self, self.io)
         self.latched_inputs = [LatchedSubscription(self, Float64MultiArray, "target", self.on_target),
                                LatchedSubscription(self, MarkerArray, "obstacles", self.on_obstacles)]
-        self.ledger = InputLedger(["target", "obstacles"] + (["goal_pose"] if self.io.goal_type else []))
+        targets = ["target"] + (["goal_pose"] if self.io.goal_type else [])
+        self.ledger = InputLedger([*targets, "obstacles"], kept=targets)
         if self.io.goal_type is not None:
             self.latched_inputs.append(LatchedSubscription(self, self.io.goal_type, "goal_pose", self.on_goal))
         # their own group: a large MarkerArray is deserialised beside a running sample (controller_threads)
@@ -294,32 +295,25 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
     @locked
     def on_target(self, msg: Float64MultiArray) -> None:
         with self.judging("target"):  # counted; refused with the reason (controller_inputs.py)
-            self.set_target(array_to_vector(msg, self.p, "target"))
+            self.set_target(array_to_vector(msg, self.p, "target"), "target")
 
     @locked
     def on_goal(self, msg: PoseStamped) -> None:
         """A goal pose (RViz "2D Goal Pose"): its position is y_t, in the odometry frame only."""
         with self.judging("goal_pose"):
-            self.set_target(self.io.target_of(msg))
+            self.set_target(self.io.target_of(msg), "goal_pose")
 
-    def set_target(self, target: np.ndarray) -> None:
+    def set_target(self, target: np.ndarray, source: str) -> None:
+        """y_t [p] from the input `source` (`target`, `goal_pose`), in force from the next sample."""
         self.target = target
+        self.ledger.applied(source, target)
         self.get_logger().info(f"target y_t = {self.target.tolist()}")
         if self.lockstep and self.active and not self.state_solved:
             self.on_sample()
 
     def on_obstacles(self, msg: MarkerArray) -> None:
         with self.applied_beside_samples(msg) as report:  # holding the lock once applied
-            self.ledger.received("obstacles")
-            if report.rejected:
-                self.ledger.refused("obstacles", [f"marker {ns}/{i}: {reason}" for ns, i, reason in report.rejected])
-            for ns, marker_id, reason in report.rejected:
-                self.reject(f"marker {ns}/{marker_id}", reason)
-                self.last_obstacle_issue = f"refused {ns}/{marker_id}: {reason}"
-            for ns, marker_id, reason in report.resets:
-                self.counts["obstacle_resets"] += 1
-                self.last_obstacle_issue = f"reset {ns}/{marker_id}: {reason}"
-                self.log_throttled("obstacle_reset", "warning", f"marker {ns}/{marker_id}: {reason}")
+            self.note_obstacles(report)  # controller_inputs.py
             if report.keys_changed:  # once per change of the set, not per message of a moving feed
                 self.log_throttled("obstacles", "info", f"obstacles received: {len(self.store)} region(s) stored")
 
@@ -486,7 +480,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
                   "mismatch_margin": f"{self.controller.mismatch_margin:.6g}",
                   "mismatch_error": f"{self.controller.memory.mismatch.last_error:.6g}",
                   "moving_regions": str(sum(r.moving for r in self.controller.regions)),
-                  "last_obstacle_issue": self.last_obstacle_issue, "last_rejected": self.last_rejected,
+                  **self.obstacle_issue.values(), "last_rejected": self.last_rejected,
                   **self.ledger.values(), **self.goal_values(), **self.startup,
                   **({"state_depth": f"{a.state_depth:.6g}", "plan_depth": f"{a.plan_depth:.6g}"}
                      if (a := self.last_alarm) else {})}

@@ -49,6 +49,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 
 from ..core.errors import RegionError
+from .controller_inputs import ObstacleIssue, ObstacleKind
 
 #: the late cover (see the module docstring): checks per sample period, and how late (sample periods
 #: after its tick) a sample's command may be before the cover publishes
@@ -109,7 +110,7 @@ def transition(method):
 
 class AlwaysAnswers:
     """Mixin of the controller node (a LifecycleNode with `controller`, `options`, `io`, `counts`,
-    `last_result`, `safe_input`, `last_obstacle_issue`)."""
+    `last_result`, `safe_input`, `obstacle_issue`)."""
 
     def setup_threads(self) -> None:
         """Right after LifecycleNode.__init__: the lock, the flags, the callback groups."""
@@ -296,5 +297,5 @@ class AlwaysAnswers:
         """A stored region that a view or the certificate cannot move to another time: Polygon.at
         raises for a moving polygon of huge coordinates whose translated vertices merge in floating
         point (met in test_flood_dds: "a polygon needs at least 3 distinct vertices, got 2")."""
-        self.last_obstacle_issue = f"{what}: {exc}"
+        self.obstacle_issue = ObstacleIssue(ObstacleKind.REGION, what, str(exc))
         self.log_throttled("region_issue", "warning", f"{what}: {exc}")

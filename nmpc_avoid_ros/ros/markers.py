@@ -62,7 +62,9 @@ class ApplyReport:
     changed: the stored regions differ from before the message (a moving one that moved counts);
     keys_changed: which regions are stored (their ns/id) differs (what a log line reports: a feed of
     moving obstacles changes the regions every message, the set rarely); resets: (ns, id, reason)
-    per accepted marker whose velocity estimate was reset (a jump, a skewed or decreasing stamp).
+    per accepted marker whose velocity estimate was reset (a jump, a skewed or decreasing stamp);
+    malformed: (ns, id) of the rejected markers that were not Marker-like objects (an attribute missing or
+    of the wrong type: the catch-all, which a real Marker never reaches).
     """
 
     applied: int = 0
@@ -71,6 +73,7 @@ class ApplyReport:
     changed: bool = False
     keys_changed: bool = False
     resets: list[tuple[str, int, str]] = field(default_factory=list)
+    malformed: list[tuple[str, int]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,7 @@ class RegionStore:
                 report.rejected.append((ns, marker_id, str(exc) or type(exc).__name__))
             except Exception as exc:  # a malformed message object must never crash the node
                 report.rejected.append((ns, marker_id, f"malformed marker: {type(exc).__name__}: {exc}"))
+                report.malformed.append((ns, marker_id))
         after = {key: entry.region for key, entry in self._entries.items()}
         # velocity tracks live as long as their regions; checked after the whole message, so a
         # DELETEALL followed by the same keys (a publisher replacing its set) keeps the estimates

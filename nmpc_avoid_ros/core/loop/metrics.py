@@ -105,11 +105,13 @@ def region_depth(region: Region, points: np.ndarray) -> np.ndarray:
     return np.array([region.depth(pt) for pt in points.T])
 
 
-def keep_in_values(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """g of each keep-in expression at each state [len(x), q] (> 0: outside the keep-in set)."""
+def keep_in_values(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
+                   expressions: Sequence[str] | None = None) -> np.ndarray:
+    """g of each keep-in expression at each state [len(x), q] (> 0: outside the keep-in set);
+    `expressions`: other inequalities of the same form instead (e.g. settings.constraints, the hard ones)."""
     xsym, usym = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
     table = model.symbol_table(xsym, usym)
-    keep = [parse_keep_in(text, table).g for text in settings.keep_in]
+    keep = [parse_keep_in(text, table).g for text in (settings.keep_in if expressions is None else expressions)]
     if not keep:
         return np.zeros((len(x), 0))
     fn = ca.Function("keep_in", [xsym, usym], [ca.vertcat(*keep)]).map(len(x))
