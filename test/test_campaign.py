@@ -16,7 +16,13 @@ from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.evaluation.campaign.cli import main
 from nmpc_avoid_ros.evaluation.campaign.reachability import ReachableSet, planar_passage, vdp_passage
 from nmpc_avoid_ros.evaluation.campaign.running import JSON_NAME, JSONL_NAME, read_jsonl
-from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings, make_specs
+from nmpc_avoid_ros.evaluation.campaign.scenarios import (
+    families,
+    load_settings,
+    make_specs,
+    robot_scenario,
+    unicycle_scenario,
+)
 
 # seed 2: vdp-0004 (unreachable target -6.4) and vdp-0005 (target 0.8) have no ellipse
 SEED = "2"
@@ -227,3 +233,27 @@ def test_set_changes_any_setting_of_every_family_and_a_resume_must_repeat_it(tmp
         assert main([*args[:1], str(tmp_path / "other"), *args[2:], *bad]) == 2
         error = capsys.readouterr().err.strip()
         assert error.startswith("campaign: error: ") and why in error, error
+
+
+def test_the_unicycle_family_runs_the_robot_scenes_with_the_unicycle_and_counts_fallbacks_far_from_regions(tmp_path):
+    """Opt-in (--unicycle N): scenes drawn as the robot family's (start, goal and ellipses), the unicycle at rest facing
+    the way the robot's initial velocity would point; every record counts the fallback samples with no region
+    within 1 m."""
+    unicycle = families()["unicycle"]
+    assert unicycle.config == default_config_path().parent / "unicycle.yaml"
+    settings = load_settings(unicycle.config)
+    model = make_model(settings.model)
+    for seed in range(3):
+        spec = unicycle_scenario(np.random.default_rng(seed), settings, model)
+        same = robot_scenario(np.random.default_rng(seed), settings, model)
+        x, y, vx, vy = same["x0"]
+        assert spec["x0"] == pytest.approx([x, y, np.arctan2(vy, vx)]) and spec["target"] == same["target"]
+        assert spec["ellipses"] == same["ellipses"]
+    out = tmp_path / "u"
+    assert main(["--out", str(out), "--vdp", "0", "--robot", "0", "--unicycle", "1", "--unicycle-steps", "10",
+                 "--max-solve-time", "30", "--no-progress", "--no-plots"]) == 0
+    (record,) = read_jsonl(out / JSONL_NAME).values()
+    assert record["id"] == "unicycle-0000" and len(record["final_state"]) == 3
+    assert 0 <= record["fallbacks_far"] <= record["fallbacks"]
+    summary = json.loads((out / "summary.json").read_text())["summary"]
+    assert set(summary) == {"unicycle"} and "fallbacks_far" in summary["unicycle"]

@@ -32,17 +32,22 @@ ADMISSIBLE_SLACK = 1e-6
 class ReachableSet:
     """Y_r of one configuration (steady outputs with (x_s, u_s) in lambda * Z, paper eq. 4-5).
 
-    Needs the model's closed-form steady-state maps g_x, g_u (both campaign models have them).
+    Needs the model's closed-form steady-state maps g_x, g_u, or its `steady_guess` from x = 0 where every
+    output has a steady state of that form (the unicycle: at rest, heading 0, a heading its box leaves free).
     """
 
     def __init__(self, settings: ControllerSettings, model: Model) -> None:
-        if model.steady_state is None:
-            raise ConfigError(f"campaign: model {model.name} has no closed-form steady state")
         self.settings, self.model = settings, model
         lam = settings.steady_state_scale
-        y = ca.SX.sym("y", model.p)
-        xs, us = (ca.vertcat(v) for v in model.steady_state(y))
-        self.steady = ca.Function("steady", [y], [xs, us])
+        if model.steady_state is not None:
+            y = ca.SX.sym("y", model.p)
+            xs, us = (ca.vertcat(v) for v in model.steady_state(y))
+            closed_form = ca.Function("steady", [y], [xs, us])
+            self.steady = lambda Y: tuple(np.asarray(v).reshape(-1, Y.shape[1]) for v in closed_form.map(Y.shape[1])(Y))
+        elif model.steady_guess is not None:
+            self.steady = self._guessed_steady
+        else:
+            raise ConfigError(f"campaign: model {model.name} has no steady-state map (closed form or steady_guess)")
         xsym, usym = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
         table = model.symbol_table(xsym, usym)
         hard = [parse_keep_in(t, table).g for t in settings.constraints]
@@ -53,6 +58,12 @@ class ReachableSet:
         self.hi = lam * np.array([*settings.state_max, *settings.input_max], float)
         self._projection = TargetProjection(settings, model)
         self.box = self._output_box()
+
+    def _guessed_steady(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(x_s [n, K], u_s [m, K]) of outputs Y [p, K] from the model's steady_guess at x = 0."""
+        rest = np.zeros(self.model.n)
+        pairs = [self.model.steady_guess(y, rest) for y in Y.T]
+        return np.array([x for x, _ in pairs], float).T, np.array([u for _, u in pairs], float).T
 
     def project(self, y_t: Sequence[float]) -> np.ndarray:
         """y* [p]: the point of Y_r nearest to y_t (Euclidean), as the controller projects its target."""
@@ -73,7 +84,7 @@ class ReachableSet:
         """For candidate outputs Y [K, p]: steady state in lambda * Z and outside every region [K] bool."""
         Y = np.atleast_2d(np.asarray(Y, float))
         K = len(Y)
-        xs, us = (np.asarray(v).reshape(-1, K) for v in self.steady.map(K)(Y.T))
+        xs, us = self.steady(Y.T)
         z = np.vstack([xs, us])
         ok = np.all((z >= self.lo[:, None] - ADMISSIBLE_SLACK) & (z <= self.hi[:, None] + ADMISSIBLE_SLACK), axis=0)
         lam = self.settings.steady_state_scale

@@ -130,6 +130,14 @@ def robot_scenario(rng: np.random.Generator, settings: ControllerSettings, model
     return {"x0": x0.tolist(), "target": goal.tolist(), "ellipses": ellipses}
 
 
+def unicycle_scenario(rng: np.random.Generator, settings: ControllerSettings, model: Model) -> dict[str, Any]:
+    """A scene drawn as the robot family's (start, goal, 0-4 ellipses; its own seed code, so not the same
+    scenes) for the unicycle (x, y, heading), at rest, facing the way the robot's initial velocity would point."""
+    spec = robot_scenario(rng, settings, model)
+    x, y, vx, vy = spec["x0"]
+    return {**spec, "x0": [x, y, math.atan2(vy, vx)]}
+
+
 #: robot speed the crossing times of the moving family are planned with (the config's limit is 1.2 m/s)
 NOMINAL_SPEED = 1.0
 #: obstacle speeds of the moving family, m/s
@@ -183,6 +191,9 @@ FAMILIES: tuple[Family, ...] = (
     Family("moving", 3, "mobile_robot.yaml", 0, 100, moving_scenario,
            lambda x_end, y_end, y_goal, regions: planar_passage(y_end, y_goal, regions),
            "robot among moving ellipses", schedule=moving_schedule),
+    # not run unless asked for (--unicycle N): scenes of the robot family's kind with config/unicycle.yaml
+    Family("unicycle", 4, "unicycle.yaml", 0, 200, unicycle_scenario,
+           lambda x_end, y_end, y_goal, regions: planar_passage(y_end, y_goal, regions), "unicycle"),
 )
 
 

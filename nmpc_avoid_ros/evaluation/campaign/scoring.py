@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ...bag.distance import nearest_region_distance
 from ...core.config.settings import ControllerSettings
 from ...core.errors import NmpcError
 from ...core.loop.closed_loop import ClosedLoopRun, run_closed_loop
@@ -74,6 +75,8 @@ PROBE_SOLVE_TIME = 20.0
 STATUS_CODES = {StepStatus.OK: ".", StepStatus.TRUNCATED: "t", StepStatus.UNCONVERGED: "u",
                 StepStatus.FALLBACK_SHIFT: "s",
                 StepStatus.FALLBACK_STEADY: "S", StepStatus.FALLBACK_SAFE: "X", StepStatus.FALLBACK_RECOVERY: "R"}
+#: a fallback sample this far (region plane units: m for the robots) from every region has no obstacle near
+FAR_FROM_REGIONS = 1.0
 #: the fallback candidates (core/sample/fallback.py), as statuses
 FALLBACK_KINDS = tuple(StepStatus(f"fallback_{kind}") for kind in FALLBACK_CANDIDATES)
 #: penetration from this sample on is where the input can act (x(1) is fixed by x(0), u(0) partly)
@@ -205,12 +208,17 @@ def solver_section(s: Scored) -> dict[str, Any]:
     pairs = sum(usable[k - 1] for k in range(1, K))
     kept = sum(usable[k - 1] and usable[k] for k in range(1, K))
     fallbacks = {kind: run.status.count(kind) for kind in FALLBACK_KINDS}
+    fallback_samples = [k for k, st in enumerate(run.status) if StepStatus(st).is_fallback]
+    nearest = nearest_region_distance(s.settings.plane, s.settings.output_plane, run.x[fallback_samples],
+                                      s.y[fallback_samples], [run.regions[min(k, len(run.regions) - 1)]
+                                                              for k in fallback_samples] if run.regions else [])
     return {
         "samples": K, "ok": run.status.count(StepStatus.OK), "truncated": run.status.count(StepStatus.TRUNCATED),
         "unconverged": run.status.count(StepStatus.UNCONVERGED),
         # a sample its prepared plan answered ran no solver (its preparation did, and converged): not a failure
         "solver_failures": int(sum(st not in SOLVED and st != ANSWERED_STATUS for st in run.solver_status)),
         "fallbacks": int(sum(fallbacks.values())), "fallback_kinds": fallbacks,
+        "fallbacks_far": int(np.sum(nearest > FAR_FROM_REGIONS)),
         "initial_feasible": bool(usable[0]),
         "x0_in_feasible_set": "feasible" if usable[0] else start_feasibility(s.probe, s.spec["x0"], s.y_t),
         "rf_pairs": int(pairs), "rf_kept": int(kept),

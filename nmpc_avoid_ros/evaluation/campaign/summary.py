@@ -85,6 +85,7 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "truncated": sum(r["truncated"] for r in records),
         "unconverged": sum(r.get("unconverged", 0) for r in records),  # records from before the status: none
         "fallbacks": sum(r["fallbacks"] for r in records),
+        "fallbacks_far": sum(r.get("fallbacks_far", 0) for r in records),
         "fallback_kinds": {k: sum(r["fallback_kinds"].get(k, 0) for r in records) for k in FALLBACK_KINDS},
         "penetration_after_first_step": _max([r["penetration_after_first_step"] for r in feasible_start]),
         "penetration_after_first_step_all_runs": _max([r["penetration_after_first_step"] for r in finished]),
@@ -177,6 +178,8 @@ DEFINITIONS = {
                 "candidate predicting the least violation, core/sample/fallback.py)",
     "penetration_after_first_step": "max over runs (x0 in X_N, not stopped early) of the largest g over x(2..K), "
                                     "where the input can act; 0 if never inside",
+    "fallbacks_far": "fallback samples with no region within 1 (m for the robots; the state plane's units for van der "
+                     "Pol) of the state: a fallback with no obstacle near",
     "fallback_penetration": "max over runs and fallback samples k of the largest g over x(k+1..k+N)",
     "unavoidable_at_start": "x0 in X_N, but the least-violating input of sample 0 (plan, safe input or recovery "
                             "solve) still predicts a violation over 1e-3: a region cannot be avoided from x0 "
@@ -217,8 +220,9 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"ellipses {s['max_penetration_obstacles']:.3g}; runs > 1e-3: {s['runs_with_penetration_over_1e-3']})",
             f"  samples {s['samples']}: solver failures {s['solver_failures']} (truncated {s['truncated']}, "
             f"unconverged {s['unconverged']}), "
-            f"fallbacks {s['fallbacks']} in {s['runs_with_fallback']} runs, recursive feasibility "
-            f"{pct(s['recursive_feasibility_rate'])}",
+            f"fallbacks {s['fallbacks']} in {s['runs_with_fallback']} runs "
+            f"({s['fallbacks_far']} with no region within 1), "
+            f"recursive feasibility {pct(s['recursive_feasibility_rate'])}",
             f"  first solve failed {s['first_solve_failed']} (x0 in X_N: {s['first_solve_failed_x0_feasible']}; "
             f"x0 outside X_N {s['x0_infeasible']}, unknown {s['x0_feasibility_unknown']})",
             f"  stop short {s['stop_short']} {s['stop_short_causes']} distance median "
