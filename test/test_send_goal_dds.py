@@ -5,11 +5,12 @@ to a controller of the array interface it fails at once, naming the interface.
 
 The unicycle (config/unicycle.yaml, robot interface) without a plant: the idle controller publishes
 its diagnostics every sample (ERROR: no odometry), which carry `goal_pose_received` / `_verdict` /
-`_reason`; its log says the target it took. The recorder's ~/counts say when it wrote each goal.
+`_reason` and `goal_pose_applied` (the targets it took). The recorder's ~/counts say when it wrote each goal.
 """
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -56,7 +57,7 @@ def test_send_goal_reaches_the_robot_controller_and_the_recorder_every_time(ros_
     assert "goal [3, 2] yaw 0 on /goal_pose" in line, line
     assert probe.spin_until(lambda: diags[-1]["goal_pose_received"] == "1", 5.0), diags[-1]
     assert (diags[-1]["goal_pose_verdict"], diags[-1]["goal_pose_reason"]) == ("accepted", "")
-    assert "target y_t = [3.0, 2.0]" in ctrl.output(), ctrl.output()[-2000:]
+    assert json.loads(diags[-1]["goal_pose_applied"]) == [[3.0, 2.0]]  # the target it took: the goal's position
 
     for i in range(REPEATS):  # each call reaches both: the recorder's count of /goal_pose goes up by one
         goal = (3.0 - i, 2.0 + 0.5 * i, 0.4 * i - 0.8)
@@ -64,7 +65,7 @@ def test_send_goal_reaches_the_robot_controller_and_the_recorder_every_time(ros_
         sent.append(goal)
         assert probe.spin_until(lambda: counts.get("/goal_pose") == len(sent), 5.0), counts
     assert probe.spin_until(lambda: diags[-1]["goal_pose_received"] == str(len(sent)), 5.0), diags[-1]
-    assert f"target y_t = [{sent[-1][0]}, {sent[-1][1]}]" in ctrl.output()
+    assert json.loads(diags[-1]["goal_pose_applied"]) == [[x, y] for x, y, _ in sent]
 
     # the robot interface subscribes `target` too (an array y_t of p = 2 values)
     proc, _ = run_send(env, "target", "1", "1")
