@@ -146,3 +146,33 @@ def test_the_mobile_robot_measured_over_its_speed_limit_slows_down_on_its_plan_w
     assert not result.status.is_fallback, result.fallback_reason
     speeds = np.hypot(result.states[:, 2], result.states[:, 3])
     assert speeds[1] <= 1.2 + 1e-3 and np.all(speeds[1:] <= 1.2 + 1e-3)
+
+
+@pytest.mark.parametrize("x0, goal", [([0.0, 0.0, 0.0], [2.0, 1.0, math.pi / 2]),  # ahead, arrive turned left
+                                      ([3.0, 0.0, 0.0], [-4.0, 0.0, math.pi]),  # behind, arrive facing it
+                                      ([0.0, 0.0, 3.0], [2.0, -1.0, -math.pi / 2])])  # -pi/2 is 4.71 from 3.0
+def test_a_goal_pose_is_reached_with_its_heading_by_unicycle_pose(x0, goal):
+    """model unicycle_pose (y = [x, y, theta]) with output_weights [1, 1, 0.3]: the shipped unicycle's settings
+    otherwise (forward only, acceleration limits). The heading arrives within 0.01 rad the short way round
+    (the target's yaw is taken within pi of the robot's heading), the position within the goal tolerance."""
+    settings = robot_settings(model="unicycle_pose", output_weights=[1.0, 1.0, 0.3], max_solve_time=OFFLINE_SOLVE_TIME)
+    run = run_closed_loop(NmpcController(settings), x0, goal, 120, "continuous")
+    x = np.asarray(run.x)
+    assert np.hypot(*(x[-1, :2] - goal[:2])) <= GOAL["tolerance"]
+    assert abs(math.remainder(x[-1, 2] - goal[2], 2 * math.pi)) <= 0.01
+    assert np.all(run.u[:, 0] >= -1e-9) and {str(s) for s in run.status} == {"ok"}
+    assert abs(x[-1, 2] - x0[2]) < 2 * math.pi  # no extra turn
+
+
+def test_angle_outputs_take_the_target_the_short_way_and_weights_must_fit_the_outputs():
+    model = make_model("unicycle_pose")
+    assert model.p == 3 and model.angle_outputs == ((2, 2),)
+    np.testing.assert_allclose(model.nearest_target(np.array([1.0, 2.0, -math.pi / 2]), np.array([0.0, 0.0, 3.0])),
+                               [1.0, 2.0, 1.5 * math.pi])
+    np.testing.assert_allclose(model.output_error(np.array([0.0, 0.0, 7.0]), np.array([0.0, 0.0, 0.5])),
+                               [0.0, 0.0, math.remainder(6.5, 2 * math.pi)])
+    plain = make_model("unicycle")
+    assert plain.nearest_target(np.array([1.0, 2.0]), np.array([0.0, 0.0, 9.0])).tolist() == [1.0, 2.0]
+    from nmpc_avoid_ros.core.errors import ConfigError
+    with pytest.raises(ConfigError, match="output_weights needs 3 values"):
+        NmpcController(robot_settings(model="unicycle_pose", output_weights=[1.0, 0.3]))

@@ -104,6 +104,12 @@ def test_odometry_goal_and_twist_round_trips_and_frame_checks():
         goal_to_target(goal, "odom")
     goal.header.frame_id = "odom"
     np.testing.assert_allclose(goal_to_target(goal, "odom"), [3.0, 2.0])
+    # for unicycle_pose the goal's heading too (a quaternion of yaw 2.5 rad, not normalised)
+    goal.pose.orientation.z, goal.pose.orientation.w = 2 * math.sin(1.25), 2 * math.cos(1.25)
+    np.testing.assert_allclose(goal_to_target(goal, "odom", with_heading=True), [3.0, 2.0, 2.5])
+    goal.pose.orientation.z = goal.pose.orientation.w = 0.0
+    with pytest.raises(InputError, match="zero norm"):
+        goal_to_target(goal, "odom", with_heading=True)
     stamped = velocity_command([0.3, 0.2], True, goal.header.stamp, "base_link")
     assert stamped.header.frame_id == "base_link"
     np.testing.assert_allclose(twist_to_command(stamped), [0.3, 0.2])

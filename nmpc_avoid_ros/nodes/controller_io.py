@@ -69,6 +69,7 @@ class RobotInterface:
     def __init__(self, node: Node, model: Model, options: NodeSettings) -> None:
         check_robot_model(model)
         self.node = node
+        self.with_heading = model.p == 3  # unicycle_pose: the goal's orientation is part of y_t
         self.odom_frame, self.base_frame = options.odom_frame, options.base_frame
         self.stamped = options.cmd_vel_stamped
         self.frames = DisplayFrames(self.odom_frame, self.odom_frame)
@@ -84,7 +85,7 @@ class RobotInterface:
         self.publisher.publish(velocity_command(u, self.stamped, stamp, self.base_frame))
 
     def target_of(self, msg: Any) -> np.ndarray:
-        return goal_to_target(msg, self.odom_frame)
+        return goal_to_target(msg, self.odom_frame, self.with_heading)
 
     def destroy(self) -> None:
         self.node.destroy_publisher(self.publisher)

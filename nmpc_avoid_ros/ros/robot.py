@@ -89,11 +89,14 @@ def odometry_to_state(msg: Odometry, odom_frame: str, base_frame: str, last_thet
     return np.array([x, y, theta])
 
 
-def goal_to_target(msg: PoseStamped, frame: str) -> np.ndarray:
-    """The goal's position [x, y] as y_t (its orientation is not part of the output); InputError otherwise."""
+def goal_to_target(msg: PoseStamped, frame: str, with_heading: bool = False) -> np.ndarray:
+    """The goal's position [x, y] as y_t, and with `with_heading` (a model whose outputs are the pose,
+    unicycle_pose) its yaw [x, y, yaw] (rad, in [-pi, pi]; the controller turns the short way); InputError for a
+    goal in another frame, NaN or infinite values or, with the heading, an orientation of zero norm."""
     _check_frame("goal_pose header.frame_id", msg.header.frame_id, frame)
     position = msg.pose.position
-    return np.array(_finite("goal_pose position", position.x, position.y))
+    xy = _finite("goal_pose position", position.x, position.y)
+    return np.array([*xy, yaw_of(msg.pose.orientation)] if with_heading else xy)
 
 
 def velocity_command(u: Sequence[float], stamped: bool, stamp: Time, base_frame: str) -> Twist | TwistStamped:

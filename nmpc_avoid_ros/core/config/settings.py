@@ -116,6 +116,10 @@ class ControllerSettings:
     input_weights: tuple[float, ...] = setting((1.0,), "diagonal of R in the stage cost |u - u_a|_R^2 (m values)",
                                                runtime=True, low=0.0)
     kappa: float = setting(1.0e4, "offset cost weight: V_o = kappa |y_a - y_t|^2", runtime=True, low=0.0)
+    output_weights: tuple[float, ...] = setting(
+        (), "diagonal of W in the offset cost V_o = kappa |y_a - y_t|_W^2 (p values, each > 0), e.g. how much a "
+            "unicycle_pose's goal heading (rad) counts against its position (m); empty: all 1, the paper's "
+            "|y_a - y_t|^2. Fixed at construction", low=0.0, low_open=True)
     mu: float = setting(1.0e8, "avoidance weight: V_a = mu (F(x_a) + sum_j F(x(j))); 0 disables avoidance",
                         runtime=True, low=0.0)
     max_iterations: int = setting(200, "solver iteration budget per sample, the fast paths' real-time work budget "

@@ -101,7 +101,7 @@ class GoalWatch:
             self.reset()
             self.goal = y_t.copy()
         before = self.last
-        distance = float(np.linalg.norm(self.output(x) - y_t))
+        distance = float(np.linalg.norm(self.model.output_error(self.output(x), y_t)))  # an angle: the short way
         rest = self.at_rest(x, rest_speed)
         enabled = tolerance > 0
         reached = enabled and (distance <= tolerance + hysteresis if before.reached else distance <= tolerance and rest)

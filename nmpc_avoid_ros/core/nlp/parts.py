@@ -106,6 +106,14 @@ class ProblemParts:
     closed_form: bool
     u_prev: ca.SX  # [m] the command in force, with input_rate_max (else empty)
     rate_on: ca.SX  # [1] 1 when there is one (else empty)
+    output_weights: np.ndarray | None = None  # [p] W of V_o (settings.output_weights); None: the paper's |.|^2
+
+    def offset_cost(self, y_a: ca.SX) -> ca.SX:
+        """V_o = kappa |y_a - y_t|_W^2 (the paper's kappa |y_a - y_t|^2, to the last operation, without weights)."""
+        dy = y_a - self.y_t
+        if self.output_weights is None:
+            return self.kappa * ca.dot(dy, dy)
+        return self.kappa * ca.dot(self.output_weights * dy, dy)
 
 
 def keep_in_bends(expressions: list[ca.SX], x: ca.SX, u: ca.SX) -> np.ndarray:
@@ -130,6 +138,9 @@ def check_sizes(settings: ControllerSettings, model: Model) -> None:
     if settings.input_rate_max and len(settings.input_rate_max) != model.m:
         raise ConfigError(f"input_rate_max needs {model.m} values for model {model.name} (or none: off), got "
                           f"{len(settings.input_rate_max)}")
+    if settings.output_weights and len(settings.output_weights) != model.p:
+        raise ConfigError(f"output_weights needs {model.p} values for model {model.name} (or none: all 1), got "
+                          f"{len(settings.output_weights)}")
     if max(settings.plane) >= model.n:
         raise ConfigError(f"plane {settings.plane} indexes beyond the {model.n} states of {model.name}")
 
@@ -183,7 +194,7 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, chord, hard_g, hard_uses_u,
                         len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
                         output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None,
-                        u_prev, rate_on)
+                        u_prev, rate_on, np.array(s.output_weights, float) if s.output_weights else None)
 
 
 def depth_function(parts: ProblemParts, model: Model) -> ca.Function:

@@ -38,7 +38,7 @@ CUT_SHORT = frozenset({"User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maxi
 
 
 class TargetProjection:
-    """y_t [p] -> y* [p], the point of Y_r nearest to y_t (Euclidean), cached per target."""
+    """y_t [p] -> y* [p], the point of Y_r nearest to y_t (Euclidean, weighted by output_weights), cached per target."""
 
     def __init__(self, settings: ControllerSettings, model: Model) -> None:
         n, m, lam = model.n, model.m, settings.steady_state_scale
@@ -47,7 +47,9 @@ class TargetProjection:
         rest = model.equilibrium(x, u)  # rows of full rank at rest (the unicycle's dynamics lose rank there)
         g = ca.vertcat(rest, hard)
         self._output = ca.Function("projection_output", [x, u], [model.output(x, u)])
-        problem = {"x": ca.vertcat(x, u), "p": y_t, "f": ca.sumsqr(model.output(x, u) - y_t), "g": g}
+        # nearest in V_o's own metric |.|_W (the NLP's offset settles y_a there)
+        weights = np.sqrt(settings.output_weights) if settings.output_weights else 1.0
+        problem = {"x": ca.vertcat(x, u), "p": y_t, "f": ca.sumsqr(weights * (model.output(x, u) - y_t)), "g": g}
         self._stop_at = StopAt(n + m, g.numel(), model.p, "projection_stop_at")
         self._solver = ca.nlpsol("target_projection", "ipopt", problem, {
             "print_time": False, "error_on_fail": False, "iteration_callback": self._stop_at,

@@ -165,8 +165,7 @@ class StagewiseNlp(NlpBase):
                     g.append(parts.hard_g(x_a / lam, u_a / lam))
                     lbg += [-inf] * parts.n_hard
                     ubg += [0.0] * parts.n_hard
-                dy = Y[0] - parts.y_t
-                v_offset = parts.kappa * ca.dot(dy, dy)
+                v_offset = parts.offset_cost(Y[0])
                 cost += v_offset + 2 * parts.mu * ca.dot(s_a, s_a) + regularise * ca.dot(s_a, s_a)
                 slack_vars.append(s_a)
                 slack_depths.append(depth_a)

@@ -202,7 +202,7 @@ class TrackingNlp(NlpBase):
         hard_g, hard_uses_u = parts.hard_g, parts.hard_uses_u
         layout = NlpLayout(n, m, p, N, parts.n_keep_in, parts.slot_layout.size, closed_form, (N + 2) * parts.n_depth)
         self.layout = layout
-        x0, y_t, kappa, mu, q, r, par = parts.x0, parts.y_t, parts.kappa, parts.mu, parts.q, parts.r, parts.par
+        x0, mu, q, r, par = parts.x0, parts.mu, parts.q, parts.r, parts.par
         avoidance = parts.avoidance
 
         # decision variables
@@ -284,8 +284,7 @@ class TrackingNlp(NlpBase):
             lbg += [0.0] * (rest.numel() + p)
             ubg += [0.0] * (rest.numel() + p)
 
-        dy = y_a - y_t
-        v_offset = kappa * ca.dot(dy, dy)
+        v_offset = parts.offset_cost(y_a)
         cost = v_offset + mu * ca.dot(slack, slack) + tracking
         v_avoid = mu * ca.sumsqr(ca.fmax(0, depth))
 

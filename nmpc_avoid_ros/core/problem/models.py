@@ -44,6 +44,8 @@ class Model:
             such a model (turning alone does not move its output), so the solver would stay put.
         rest: optional CasADi Function (x[n], u[m]) -> r[k] whose zeros are exactly the equilibria f(x, u) = 0 and
             whose Jacobian has full row rank there; None: the dynamics themselves are (see `equilibrium`).
+        angle_outputs: (output index, state index) of each output that is an angle (rad) equal to an unwrapped
+            state: a target's angle is taken modulo 2 pi (`nearest_target`, `output_error`).
     """
 
     name: str
@@ -57,6 +59,24 @@ class Model:
     steady_guess: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
     turn_guess: Callable[..., tuple[np.ndarray, np.ndarray] | None] | None = None
     rest: ca.Function | None = None
+    angle_outputs: tuple[tuple[int, int], ...] = ()
+
+    def nearest_target(self, y_t: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """y_t [p] with each angle output moved by whole turns to within pi of its state in x [n] (the turn the
+        robot makes is the short one; the target stays put until the state crosses the opposite angle)."""
+        if not self.angle_outputs:
+            return y_t
+        y_t = np.array(y_t, float)
+        for i, j in self.angle_outputs:
+            y_t[i] += 2 * math.pi * round((x[j] - y_t[i]) / (2 * math.pi))
+        return y_t
+
+    def output_error(self, y: np.ndarray, y_t: np.ndarray) -> np.ndarray:
+        """y - y_t [p], angle outputs wrapped to [-pi, pi]."""
+        error = np.asarray(y, float) - np.asarray(y_t, float)
+        for i, _ in self.angle_outputs:
+            error[i] = math.remainder(error[i], 2 * math.pi)
+        return error
 
     @property
     def n(self) -> int:
@@ -218,6 +238,20 @@ def unicycle() -> Model:
                  steady_guess=near_rest, turn_guess=unicycle_turn_guess, rest=rest)
 
 
+def unicycle_pose() -> Model:
+    """The unicycle with its heading as a third output, y = [x, y, theta]: a goal pose (RViz's 2D Goal Pose,
+    `send goal X Y YAW`) is tracked with its orientation, weighted against the position by the setting
+    output_weights. At rest every pose is a steady state (x_a = y_a, u_a = 0): the closed form g_x, g_u."""
+    base = unicycle()
+    dyn, hout = _functions("unicycle_pose", 3, 2, lambda x, u: base.dynamics(x, u), lambda x, u: x)
+
+    def steady(y):
+        return ca.vertcat(y[0], y[1], y[2]), ca.vertcat(0 * y[0], 0 * y[1])
+
+    return Model("unicycle_pose", base.state_names, base.input_names, ("px", "py", "yaw"), dyn, hout,
+                 steady, (0, 1), turn_guess=unicycle_turn_guess, rest=base.rest, angle_outputs=((2, 2),))
+
+
 #: m: a target nearer than this is not turned towards (parked a little past a goal, the robot stays put)
 TURN_GUESS_DISTANCE = 0.05
 
@@ -262,6 +296,7 @@ MODELS: dict[str, Callable[[], Model]] = {
     "van_der_pol": van_der_pol,
     "double_integrator_2d": double_integrator_2d,
     "unicycle": unicycle,
+    "unicycle_pose": unicycle_pose,
 }
 
 

@@ -361,7 +361,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
             x, delay = measured, 0.0
         start = None if time is None else time + delay
         # the projection ends by the search's deadline too: every solver call of a sample by the one deadline
-        y_t = self.project_target(y_t, end=begin + SEARCH_SHARE * self.sample_budget())
+        # an angle in y_t (unicycle_pose's yaw) the short way round from the robot's heading, then y* (in reach)
+        y_t = self.project_target(self.model.nearest_target(y_t, x), end=begin + SEARCH_SHARE * self.sample_budget())
         sample = self._sample(x, y_t, start, begin, measured=measured, delay=delay, command=in_force)
         sample.measured_at = time  # (whether its mismatch bookkeeping waits for `prepare`: `step` sets `settled`)
         return sample
