@@ -243,12 +243,17 @@ def test_the_unicycle_family_runs_the_robot_scenes_with_the_unicycle_and_counts_
     assert unicycle.config == default_config_path().parent / "unicycle.yaml"
     settings = load_settings(unicycle.config)
     model = make_model(settings.model)
-    for seed in range(3):
+    inside = 0
+    for seed in range(40):
         spec = unicycle_scenario(np.random.default_rng(seed), settings, model)
         same = robot_scenario(np.random.default_rng(seed), settings, model)
         x, y, vx, vy = same["x0"]
-        assert spec["x0"] == pytest.approx([x, y, np.arctan2(vy, vx)]) and spec["target"] == same["target"]
-        assert spec["ellipses"] == same["ellipses"]
+        assert np.hypot(*spec["x0"][:2]) < 10.0  # inside the arena x^2 + y^2 <= 100 of config/unicycle.yaml
+        if np.hypot(x, y) < 9.99:  # the robot's draw was inside: the same scene
+            inside += 1
+            assert spec["x0"] == pytest.approx([x, y, np.arctan2(vy, vx)]) and spec["target"] == same["target"]
+            assert spec["ellipses"] == same["ellipses"]
+    assert 0 < inside < 40  # some of the square's corners are outside the arena, and drawn again
     out = tmp_path / "u"
     assert main(["--out", str(out), "--vdp", "0", "--robot", "0", "--unicycle", "1", "--unicycle-steps", "10",
                  "--max-solve-time", "30", "--no-progress", "--no-plots"]) == 0

@@ -25,6 +25,7 @@ import numpy as np
 
 from ...core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ...core.loop.closed_loop import RegionSchedule
+from ...core.loop.metrics import keep_in_values
 from ...core.problem.models import Model, make_model
 from ...core.problem.regions import Ellipse, Region
 from .reachability import planar_passage, vdp_passage
@@ -132,10 +133,15 @@ def robot_scenario(rng: np.random.Generator, settings: ControllerSettings, model
 
 def unicycle_scenario(rng: np.random.Generator, settings: ControllerSettings, model: Model) -> dict[str, Any]:
     """A scene drawn as the robot family's (start, goal, 0-4 ellipses; its own seed code, so not the same
-    scenes) for the unicycle (x, y, heading), at rest, facing the way the robot's initial velocity would point."""
-    spec = robot_scenario(rng, settings, model)
-    x, y, vx, vy = spec["x0"]
-    return {**spec, "x0": [x, y, math.atan2(vy, vx)]}
+    scenes) for the unicycle (x, y, heading), at rest, facing the way the robot's initial velocity would point,
+    drawn again until the start is inside the keep-in set (a start outside the arena is held there: every input
+    predicts the violation it starts with)."""
+    while True:  # a start inside the keep-in set (config/unicycle.yaml: the arena x^2 + y^2 <= 100)
+        spec = robot_scenario(rng, settings, model)
+        x, y, vx, vy = spec["x0"]
+        x0 = np.array([x, y, math.atan2(vy, vx)])
+        if np.all(keep_in_values(settings, model, x0[None, :], np.zeros((1, model.m))) <= -START_MARGIN):
+            return {**spec, "x0": x0.tolist()}
 
 
 #: robot speed the crossing times of the moving family are planned with (the config's limit is 1.2 m/s)
