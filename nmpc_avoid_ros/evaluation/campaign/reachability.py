@@ -19,10 +19,10 @@ import numpy as np
 
 from ...core.config.settings import ControllerSettings
 from ...core.errors import ConfigError
-from ...core.loop.metrics import region_depth
+from ...core.loop.metrics import keep_in_values, region_depth
 from ...core.nlp.projection import TargetProjection
 from ...core.problem.expressions import parse_keep_in
-from ...core.problem.models import Model
+from ...core.problem.models import Model, make_model
 from ...core.problem.regions import Region
 
 #: numerical slack of the lambda * Z test of a candidate steady state (the projection's accuracy)
@@ -128,12 +128,14 @@ class ReachableSet:
         return cand[np.argmin(np.linalg.norm(cand - y_t, axis=1))]
 
 
-def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]) -> bool:
+def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region],
+                settings: ControllerSettings | None = None) -> bool:
     """Is there an admissible corridor in the (x1, x2) plane from x1 = x_end[0] to x1 = y_goal?
 
     Moving x1 right needs x2 > 0 (left: x2 < 0), with |x2| <= 2 and |x1 x2| <= 2. The corridor is
     open when every x1 slice (step 0.01) between the two has such an x2 outside all ellipses
-    (continuous-time reasoning; an Euler step could jump a thin slice).
+    (continuous-time reasoning; an Euler step could jump a thin slice) and, with `settings`, inside its
+    keep-in expressions as planned (g + keep_in_margin <= 0: the live config's |x2| <= 1.995 rows too).
     """
     a, b = float(x_end[0]), float(y_goal[0])
     if abs(b - a) < 1e-9:
@@ -146,6 +148,10 @@ def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]
     free = np.ones(X1.size, bool)
     for region in regions:
         free &= region_depth(region, np.vstack([X1, X2])) <= 0
+    if settings is not None and settings.keep_in:
+        points = np.column_stack([X1, X2])
+        keep = keep_in_values(settings, make_model(settings.model), points, np.zeros((len(points), 1)))
+        free &= np.all(keep + settings.keep_in_margin <= 0, axis=1)
     return bool(np.all(free.reshape(x1.size, frac.size).any(axis=1)))
 
 

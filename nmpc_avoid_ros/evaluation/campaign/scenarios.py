@@ -34,8 +34,9 @@ from .reachability import planar_passage, vdp_passage
 START_MARGIN = 0.2
 
 Generator = Callable[[np.random.Generator, ControllerSettings, Model], dict[str, Any]]
-#: (final state [n], final output [p], goal output [p], regions) -> is there an admissible way?
-Passage = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Region]], bool]
+#: (final state [n], final output [p], goal output [p], regions as planned around, settings) -> is there an
+#: admissible way?
+Passage = Callable[[np.ndarray, np.ndarray, np.ndarray, Sequence[Region], ControllerSettings], bool]
 
 
 def spec_ellipses(spec: Mapping[str, Any]) -> list[Region]:
@@ -190,16 +191,17 @@ def moving_scenario(rng: np.random.Generator, settings: ControllerSettings, mode
 #: every family of the campaign, in the order they are listed and summarised
 FAMILIES: tuple[Family, ...] = (
     Family("vdp", 1, "van_der_pol.yaml", 500, 80, vdp_scenario,
-           lambda x_end, y_end, y_goal, regions: vdp_passage(x_end, y_goal, regions), "van der Pol"),
+           lambda x_end, y_end, y_goal, regions, settings: vdp_passage(x_end, y_goal, regions, settings),
+           "van der Pol"),
     Family("robot", 2, "mobile_robot.yaml", 200, 140, robot_scenario,
-           lambda x_end, y_end, y_goal, regions: planar_passage(y_end, y_goal, regions), "mobile robot"),
+           lambda x_end, y_end, y_goal, regions, settings: planar_passage(y_end, y_goal, regions), "mobile robot"),
     # not run unless asked for (--moving N): compare with --sweep predict_obstacles=true,false
     Family("moving", 3, "mobile_robot.yaml", 0, 100, moving_scenario,
-           lambda x_end, y_end, y_goal, regions: planar_passage(y_end, y_goal, regions),
+           lambda x_end, y_end, y_goal, regions, settings: planar_passage(y_end, y_goal, regions),
            "robot among moving ellipses", schedule=moving_schedule),
     # not run unless asked for (--unicycle N): scenes of the robot family's kind with config/unicycle.yaml
     Family("unicycle", 4, "unicycle.yaml", 0, 200, unicycle_scenario,
-           lambda x_end, y_end, y_goal, regions: planar_passage(y_end, y_goal, regions), "unicycle"),
+           lambda x_end, y_end, y_goal, regions, settings: planar_passage(y_end, y_goal, regions), "unicycle"),
 )
 
 
