@@ -131,23 +131,6 @@ def test_a_goal_inside_an_obstacle_is_reported_unreachable_with_where_the_robot_
     assert free.unreachable == ""
 
 
-def test_the_mobile_robot_measured_over_its_speed_limit_slows_down_on_its_plan_without_a_fallback():
-    """config/mobile_robot_live.yaml (RK4 in 4 sub-steps, |v| <= 1.2 m/s as a keep-in) measured at 1.25 m/s, no
-    obstacle anywhere. The first sample's sub-step states cannot all be under the limit at once; planned no deeper
-    than where the robot already is, that is the best any input does. Before, the plan was judged against the
-    limit itself there and overridden ("plan predicts penetration"; 1.7 % of the samples in real time)."""
-    from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
-
-    params = load_params_file(default_config_path().parent / "mobile_robot_live.yaml").section("controller")
-    settings = ControllerSettings.from_params(params).replace(codegen=False, codegen_background=False,
-                                                              max_solve_time=OFFLINE_SOLVE_TIME)
-    controller = NmpcController(settings)
-    result = controller.step([0.0, 0.0, 1.25 * 0.8, 1.25 * 0.6], [8.0, 6.0])
-    assert not result.status.is_fallback, result.fallback_reason
-    speeds = np.hypot(result.states[:, 2], result.states[:, 3])
-    assert speeds[1] <= 1.2 + 1e-3 and np.all(speeds[1:] <= 1.2 + 1e-3)
-
-
 @pytest.mark.parametrize("x0, goal", [([0.0, 0.0, 0.0], [2.0, 1.0, math.pi / 2]),  # ahead, arrive turned left
                                       ([3.0, 0.0, 0.0], [-4.0, 0.0, math.pi]),  # behind, arrive facing it
                                       ([0.0, 0.0, 3.0], [2.0, -1.0, -math.pi / 2])])  # -pi/2 is 4.71 from 3.0

@@ -13,8 +13,7 @@ VIOLATION_TOLERANCE count as none):
 
 Each candidate's input sequence is simulated with the prediction model over `horizon` samples;
 its predicted violation is the largest, over those samples, of: region functions g (keep-in
-expressions and obstacles, active ones; in the first sample's sub-steps beyond the measured state's
-own g), state-box excess and hard-constraint excess. The one
+expressions and obstacles, active ones), state-box excess and hard-constraint excess. The one
 with the least is applied (never blindly u = 0: measured in the campaign, u = 0 after a failed
 cold start drove van der Pol to |x1 x2| - 2 = 4.11).
 """
@@ -92,15 +91,10 @@ class FallbackSelector:
         states, excess = [x0], []
         x = x0
         ts, steps = settings.sample_time, settings.integration_steps
-        # the measured state's own depth, which no input changes: on the way on from it the NLP's first slack
-        # bounds the sub-step states by it already (core/nlp/between.py), and so does this check; a robot measured
-        # a hair over its speed limit had every plan "predict penetration" and fall back, with no obstacle near
-        measured = ca.fmax(0, depth(x0, U[:, 0], par, 0.0))
         for k in range(H):
             points = path(x, U[:, k])
             # the regions also between the samples, at the sub-step states (none for 1 step)
-            terms = [depth(points[:, i], U[:, k], par, (k + (i + 1) / steps) * ts) - (measured if k == 0 else 0)
-                     for i in range(steps - 1)]
+            terms = [depth(points[:, i], U[:, k], par, (k + (i + 1) / steps) * ts) for i in range(steps - 1)]
             x = points[:, -1]
             states.append(x)
             u_next = U[:, min(k + 1, H - 1)]
