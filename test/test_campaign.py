@@ -255,8 +255,9 @@ def test_the_unicycle_family_runs_the_robot_scenes_with_the_unicycle_and_counts_
         spec = unicycle_scenario(np.random.default_rng(seed), settings, model)
         same = robot_scenario(np.random.default_rng(seed), settings, model)
         x, y, vx, vy = same["x0"]
-        assert np.hypot(*spec["x0"][:2]) < 10.0  # inside the arena x^2 + y^2 <= 100 of config/unicycle.yaml
-        if np.hypot(x, y) < 9.99:  # the robot's draw was inside: the same scene
+        # start and goal inside the arena x^2 + y^2 <= 100 of config/unicycle.yaml
+        assert np.hypot(*spec["x0"][:2]) < 10.0 and np.hypot(*spec["target"]) < 10.0
+        if np.hypot(x, y) < 9.99 and np.hypot(*same["target"]) < 9.99:  # the robot's draw was inside: the same scene
             inside += 1
             assert spec["x0"] == pytest.approx([x, y, np.arctan2(vy, vx)]) and spec["target"] == same["target"]
             assert spec["ellipses"] == same["ellipses"]
