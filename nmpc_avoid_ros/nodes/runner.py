@@ -13,7 +13,7 @@ import traceback
 from collections.abc import Callable
 
 import rclpy
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import InvalidHandle, ParameterException
 from rclpy.executors import (
     ConditionReachedException,
     Executor,
@@ -47,6 +47,12 @@ class PoolExecutor(Executor):
         try:
             handler, _, _ = self.wait_for_ready_callbacks(timeout_sec=timeout_sec)
         except (TimeoutException, ShutdownException, ConditionReachedException):
+            pass
+        except InvalidHandle:
+            # a callback on a pool thread (the lifecycle's cleanup or shutdown) destroyed an entity while this
+            # thread built the wait set: rclpy skips destroyed timers and subscriptions there but not waitables
+            # (a publisher's QoS event handler). The next wait is built from what is left (fresh clone make test:
+            # a Traceback logged after "controller released its solver, publishers and subscriptions")
             pass
         else:
             self._running.append((handler, self._pool.submit(handler)))
