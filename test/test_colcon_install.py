@@ -46,7 +46,7 @@ def test_params_files_and_package_index_are_installed(installed):
     assert (share / "nmpc_avoid_ros" / "config" / "mobile_robot.yaml").is_file()
     for scene in ("crossing_walker", "head_on", "closing_gap"):
         assert (share / "nmpc_avoid_ros" / "config" / "scenes" / f"{scene}.yaml").is_file()
-    for name in ("config/unicycle.yaml", "config/nmpc_avoid_ros.rviz", "config/foxglove_layout.json",
+    for name in ("config/unicycle.yaml", "config/unicycle.rviz", "config/unicycle.foxglove.json",
                  "launch/demo.launch.py", "launch/robot.launch.py"):
         assert (share / "nmpc_avoid_ros" / name).is_file(), name
     assert (share / "nmpc_avoid_ros" / "package.xml").is_file()

@@ -29,8 +29,6 @@ pytestmark = [pytest.mark.dds, pytest.mark.slow]
 LAYOUTS = {"unicycle.yaml": ("unicycle.rviz", "unicycle.foxglove.json"),
            "mobile_robot.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json"),
            "mobile_robot_live.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json")}
-#: the first unicycle views, still named by README.md and test_robot_interface.py (which checks them)
-EARLIER_LAYOUTS = {"nmpc_avoid_ros.rviz", "foxglove_layout.json"}
 RVIZ_TYPES = {"rviz_default_plugins/Odometry": "nav_msgs/msg/Odometry",
               "rviz_default_plugins/Path": "nav_msgs/msg/Path",
               "rviz_default_plugins/MarkerArray": "visualization_msgs/msg/MarkerArray",
@@ -103,7 +101,7 @@ def frames_of(msg) -> set[str]:
 def test_every_robot_config_has_its_views_and_every_view_belongs_to_one():
     shipped = {p.name for p in (ROOT / "config").iterdir() if p.suffix == ".rviz" or "foxglove" in p.name}
     claimed = {name for pair in LAYOUTS.values() for name in pair}
-    assert shipped == claimed | EARLIER_LAYOUTS, shipped ^ (claimed | EARLIER_LAYOUTS)
+    assert shipped == claimed, shipped ^ claimed
     robots = {p.name for p in (ROOT / "config").glob("*.yaml")
               if load_params_file(p).section("controller").get("model") in ("unicycle", "double_integrator_2d")}
     assert robots == set(LAYOUTS)

@@ -1,4 +1,4 @@
-"""The controller's outputs for people and tools (config/nmpc_avoid_ros.rviz, config/foxglove_layout.json):
+"""The controller's outputs for people and tools (config/*.rviz, config/*.foxglove.json):
 `~/prediction` (Path), `~/regions` (MarkerArray), `~/steady_state` and `~/target_marker` (Marker),
 `~/stats` (Float64MultiArray) and `~/certificate` (Float64MultiArray), the latched `~/goal_reached` (std_msgs/Bool,
 transient local; nodes/controller_goal.py); the /diagnostics message."""
