@@ -98,9 +98,13 @@ def test_fuzzed_bursts_never_stop_the_controller(ros_graph) -> None:
     # the store still works after the garbage: a complete replacement set is applied as sent
     regions = [Ellipse((3.0, 1.5), (0.3, 0.2)), rotated_box((-3.0, -1.5), (0.4, 0.4), 0.3)]
     listen.obstacles.publish(regions_to_markers(regions))
-    listen.state_pub.publish(good)
-    assert listen.spin_until(lambda: bool(listen.diags) and listen.diags[-1]["regions"] == "2", 10), \
-        (listen.diags[-1:], ctrl.output())
+
+    def regions_in_force() -> bool:  # good states keep coming: a sample that solves installs the regions (a stale
+        listen.state_pub.publish(good)  # one does not; one good state and a 10 s wait let it go stale in a full run)
+        p.spin_for(0.1)
+        return bool(listen.diags) and listen.diags[-1]["regions"] == "2"
+
+    assert listen.spin_until(regions_in_force, 10), (listen.diags[-1:], ctrl.output())
     for _ in range(5):  # good states only: the controller solves normally again
         listen.state_pub.publish(good)
         p.spin_for(0.1)
