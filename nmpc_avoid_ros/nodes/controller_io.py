@@ -69,7 +69,7 @@ class RobotInterface:
     def __init__(self, node: Node, model: Model, options: NodeSettings) -> None:
         check_robot_model(model)
         self.node = node
-        self.with_heading = model.p == 3  # unicycle_pose: the goal's orientation is part of y_t
+        self.with_heading = bool(model.angle_outputs)  # unicycle_pose: the goal's heading is part of y_t
         self.odom_frame, self.base_frame = options.odom_frame, options.base_frame
         self.stamped = options.cmd_vel_stamped
         self.frames = DisplayFrames(self.odom_frame, self.odom_frame)

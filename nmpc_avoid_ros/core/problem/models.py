@@ -243,12 +243,13 @@ def unicycle_pose() -> Model:
     `send goal X Y YAW`) is tracked with its orientation, weighted against the position by the setting
     output_weights. At rest every pose is a steady state (x_a = y_a, u_a = 0): the closed form g_x, g_u."""
     base = unicycle()
-    dyn, hout = _functions("unicycle_pose", 3, 2, lambda x, u: base.dynamics(x, u), lambda x, u: x)
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 2)
+    hout = ca.Function("unicycle_pose_output", [x, u], [x], ["x", "u"], ["y"])
 
     def steady(y):
         return ca.vertcat(y[0], y[1], y[2]), ca.vertcat(0 * y[0], 0 * y[1])
 
-    return Model("unicycle_pose", base.state_names, base.input_names, ("px", "py", "yaw"), dyn, hout,
+    return Model("unicycle_pose", base.state_names, base.input_names, ("px", "py", "yaw"), base.dynamics, hout,
                  steady, (0, 1), turn_guess=unicycle_turn_guess, rest=base.rest, angle_outputs=((2, 2),))
 
 

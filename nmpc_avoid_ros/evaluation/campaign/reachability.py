@@ -149,8 +149,8 @@ def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]
     for region in regions:
         free &= region_depth(region, np.vstack([X1, X2])) <= 0
     if settings is not None and settings.keep_in:
-        points = np.column_stack([X1, X2])
-        keep = keep_in_values(settings, make_model(settings.model), points, np.zeros((len(points), 1)))
+        points, model = np.column_stack([X1, X2]), make_model(settings.model)
+        keep = keep_in_values(settings, model, points, np.zeros((len(points), model.m)))
         free &= np.all(keep + settings.keep_in_margin <= 0, axis=1)
     return bool(np.all(free.reshape(x1.size, frac.size).any(axis=1)))
 
