@@ -15,7 +15,9 @@ setup(
     packages=find_packages(exclude=["test", "test.*", "bench"]),
     # the HTML report's script and the uPlot it inlines (bag/report_page.py)
     package_data={f"{PACKAGE}.bag": ["report.js", "vendor/uPlot.iife.min.js", "vendor/uPlot.min.css",
-                                     "vendor/uPlot.LICENSE"]},
+                                     "vendor/uPlot.LICENSE"],
+                  # the shipped model files (core/problem/models.py)
+                  PACKAGE: ["models/*.yaml"]},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from nmpc_avoid_ros.core.errors import RegionError
 from nmpc_avoid_ros.core.problem.expressions import parse_keep_in
-from nmpc_avoid_ros.core.problem.models import van_der_pol
+from nmpc_avoid_ros.core.problem.models import make_model
 from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon, SlotLayout, rotated_box
 
 LAYOUT = SlotLayout(max_ellipses=2, max_polygons=2, max_polygon_vertices=6)
@@ -76,7 +76,7 @@ def test_inactive_slots_add_nothing():
 def test_paper_region_sign_convention():
     """g1 = x1 x2 - 2, g2 = -x1 x2 - 2: F is zero exactly where |x1 x2| <= 2."""
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
-    symbols = van_der_pol().symbol_table(x, u)
+    symbols = make_model("van_der_pol").symbol_table(x, u)
     gs = [parse_keep_in(t, symbols).g for t in ("x1*x2 - 2 <= 0", "-x1*x2 - 2 <= 0")]
     Ff = ca.Function("F", [x, u], [ca.sumsqr(ca.fmax(0, ca.vertcat(*gs)))])
     assert float(Ff([1.0, 1.9], 0)) == 0.0

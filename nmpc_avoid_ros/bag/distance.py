@@ -19,16 +19,10 @@ import numpy as np
 from ..core.problem.models import Model
 from ..core.problem.regions import Ellipse, Polygon, Region
 
-#: the units of each model's state and output coordinates (None: the model's own, unnamed units)
-COORDINATE_UNITS: dict[str, dict[str, tuple[str, ...]]] = {
-    "double_integrator_2d": {"state": ("m", "m", "m/s", "m/s"), "output": ("m", "m")},
-    "unicycle": {"state": ("m", "m", "rad"), "output": ("m", "m")},
-}
-
 
 def plane_units(model: Model, frame: str, plane: Sequence[int]) -> str:
     """The unit of a region frame's plane ("m" for a robot's position), else a description of it."""
-    units = COORDINATE_UNITS.get(model.name, {}).get(frame)
+    units = model.units.get(frame)  # the model file's `units`
     names = model.state_names if frame == "state" else model.output_names
     if units is not None and units[plane[0]] == units[plane[1]]:
         return units[plane[0]]

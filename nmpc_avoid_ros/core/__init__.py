@@ -2,10 +2,11 @@
 
 Rooms, each importing only the ones above it (problem <- config <- nlp <- sample <- loop):
 
-* problem/  what is controlled and avoided: models (dynamics, outputs, steady states), regions
-  and their penalties, motion of moving regions, algebraic expressions (parsed, never eval'd).
+* problem/  what is controlled and avoided: the model type (model.py), model files (model_files.py)
+  and the names a config can use (models.py), regions and their penalties, motion of moving
+  regions, algebraic expressions (parsed, never eval'd).
 * config/   the settings: one declaration per setting (schema.py), ControllerSettings and the
-  params-file format (settings.py).
+  params-file format (params_file.py).
 * nlp/      the optimisation problem and how it is solved: the multiple-shooting NLP (tracking.py),
   the stage-wise form for FATROP / SQP (stagewise.py), compiled oracles (codegen.py), the ellipse
   tiers (tiers.py), the target's projection onto Y_r (projection.py), the one search over starts
@@ -19,7 +20,8 @@ errors.py (the NmpcError family) is shared by every room.
 
 Where to extend it (each is a change in one place):
 
-* a model: a function returning `Model` in problem/models.py and its entry in MODELS.
+* a model: a model file (docs/own_model.md): in nmpc_avoid_ros/models/ to ship it, else named by its
+  path or registered by another package under the entry points `nmpc_avoid_ros.models`.
 * a region kind: a class in problem/regions.py with its slot layout and depth (SlotLayout packs it).
 * a setting: one `setting(...)` field in config/settings.py (config/schema.py explains; `make readme`).
 * a solver path: SOLVER_PATHS in config/settings.py and its options in nlp/tracking.py make_solver.

@@ -2,7 +2,8 @@
 
 - `array` (any model): Float64MultiArray on `state` (n values) in, on `command` (m values) out;
   what the controller draws lies in the abstract frames `state` and `output`.
-- `robot` (a model with states x, y, theta and inputs v, omega, e.g. `unicycle`): nav_msgs/Odometry
+- `robot` (a model whose file maps its state to a planar pose and its input to a velocity command,
+  `planar`: e.g. `unicycle`, `bicycle`; ros/robot.py RobotModelMap): nav_msgs/Odometry
   on `odom` in (frame ids checked), geometry_msgs/TwistStamped (or Twist, `cmd_vel_stamped: false`)
   on `cmd_vel` out, geometry_msgs/PoseStamped goals on `goal_pose` in; everything is drawn in
   `odom_frame`. The array `target` topic stays available.
@@ -64,10 +65,11 @@ class RobotInterface:
 
     state_topic, state_type = "odom", Odometry
     goal_type = PoseStamped
-    heading_index = 2
 
     def __init__(self, node: Node, model: Model, options: NodeSettings) -> None:
-        check_robot_model(model)
+        self.map = check_robot_model(model)
+        self.heading_index = model.planar.yaw
+        self.last_state: np.ndarray | None = None  # a command's twist may depend on the state (RobotModelMap)
         self.node = node
         self.with_heading = bool(model.angle_outputs)  # unicycle_pose: the goal's heading is part of y_t
         self.odom_frame, self.base_frame = options.odom_frame, options.base_frame
@@ -78,11 +80,14 @@ class RobotInterface:
         self.publisher = node.create_publisher(TwistStamped if self.stamped else Twist, "cmd_vel", COMMAND_QOS)
 
     def state_of(self, msg: Any, last: np.ndarray | None) -> np.ndarray:
-        return odometry_to_state(msg, self.odom_frame, self.base_frame, None if last is None else float(last[2]))
+        last_yaw = None if last is None else float(last[self.heading_index])
+        self.last_state = self.map.state(odometry_to_state(msg, self.odom_frame, self.base_frame, last_yaw))
+        return self.last_state
 
     def publish_command(self, u: np.ndarray) -> None:
         stamp = self.node.get_clock().now().to_msg()
-        self.publisher.publish(velocity_command(u, self.stamped, stamp, self.base_frame))
+        x = np.zeros(self.map.n) if self.last_state is None else self.last_state
+        self.publisher.publish(velocity_command(self.map.twist(x, u), self.stamped, stamp, self.base_frame))
 
     def target_of(self, msg: Any) -> np.ndarray:
         return goal_to_target(msg, self.odom_frame, self.with_heading)

@@ -47,22 +47,19 @@ from std_msgs.msg import Float64MultiArray
 from ..core.config.settings import INTERFACES
 from ..core.errors import ConfigError, InputError
 from ..core.loop.closed_loop import ContinuousPlant, DiscretePlant
-from ..core.problem.models import MODELS, make_model
+from ..core.problem.models import make_model
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.parameters import LATCHED_QOS, LATEST_QOS, STREAM_QOS, ParamSpec, declare, finite_vector
 from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command, yaw_quaternion
 from .runner import run_node
 
 INTEGRATIONS = ("continuous", "euler", "rk4")
-#: planar models by their state names -> where the heading comes from: a state (the unicycle's theta) or the
-#: direction of motion (the mobile robot's double integrator, which has no heading of its own)
-PLANAR_HEADINGS = {("x", "y", "theta"): "state", ("px", "py", "vx", "vy"): "motion"}
 #: m/s below which a model heading where it moves keeps its last heading (at rest the direction is noise)
 STILL_SPEED = 1e-3
 
 PLANT_SPECS = [
-    ParamSpec("model", "van_der_pol", "model to simulate", ParameterType.PARAMETER_STRING, read_only=True,
-              choices=tuple(sorted(MODELS))),
+    ParamSpec("model", "van_der_pol", "model to simulate: a shipped or registered model's name, or a model file's "
+              "path (docs/own_model.md)", ParameterType.PARAMETER_STRING, read_only=True),
     ParamSpec("initial_state", None, "initial state x0 (n values; default zeros)", ParameterType.PARAMETER_DOUBLE_ARRAY,
               read_only=True),
     ParamSpec("sample_time", 0.5, "lockstep: time advanced per command, s", ParameterType.PARAMETER_DOUBLE,
@@ -151,11 +148,14 @@ class PlantNode(Node):
 
         self.robot = values["interface"] == "robot"
         self.odom_frame, self.base_frame = values["odom_frame"], values["base_frame"]
-        self.heading = PLANAR_HEADINGS.get(self.model.state_names)
+        # a planar model (its file's `planar`) has a pose for the views: heading a state (the unicycle's theta) or
+        # the direction of motion (the mobile robot's double integrator, which has no heading of its own)
+        self.planar = self.model.planar
+        self.heading = None if self.planar is None else ("motion" if self.planar.yaw is None else "state")
         self.yaw = 0.0  # the heading of a model heading where it moves: kept while it stands still
         self.pub_odom = self.pub_tf = None
         if self.robot:
-            check_robot_model(self.model)
+            self.robot_map = check_robot_model(self.model)
             self.pub_state = self.pub_odom = self.create_publisher(Odometry, "odom", STREAM_QOS)
             twist_type = TwistStamped if values["cmd_vel_stamped"] else Twist
             self.create_subscription(twist_type, "cmd_vel", self.on_command, LATEST_QOS)
@@ -200,15 +200,20 @@ class PlantNode(Node):
     def pose_and_velocity(self) -> tuple[list[float], list[float]]:
         """A planar model's pose [x, y, yaw] and velocity [v, omega] in its base frame (the unicycle's: the
         command in force; a model heading where it moves: its speed and the turn rate of its velocity)."""
+        planar = self.planar
+        pose = [float(self.x[planar.x]), float(self.x[planar.y]), self.yaw]
         if self.heading == "state":
-            return [self.x[0], self.x[1], self.x[2]], [self.u[0], self.u[1]]
-        vx, vy = float(self.x[2]), float(self.x[3])
+            pose[2] = float(self.x[planar.yaw])
+            return pose, ([0.0, 0.0] if planar.command is None else
+                          np.asarray(planar.command(self.x, self.u), float).ravel().tolist())
+        vx, vy = (float(self.x[i]) for i in planar.velocity)
         speed, omega = math.hypot(vx, vy), 0.0
         if speed > STILL_SPEED:
             self.yaw = math.atan2(vy, vx)
-            ax, ay = np.asarray(self.model.dynamics(self.x, self.u), float).ravel()[2:4]
+            ax, ay = np.asarray(self.model.dynamics(self.x, self.u), float).ravel()[list(planar.velocity)]
             omega = (vx * ay - vy * ax) / speed**2
-        return [self.x[0], self.x[1], self.yaw], [speed, omega]
+            pose[2] = self.yaw
+        return pose, [speed, omega]
 
     def publish_state(self) -> None:
         if not self.robot:
@@ -234,7 +239,8 @@ class PlantNode(Node):
     def on_command(self, msg: Float64MultiArray | Twist | TwistStamped) -> None:
         previous = self.u
         try:
-            self.u = twist_to_command(msg) if self.robot else array_to_vector(msg, self.model.m, "command")
+            self.u = self.robot_map.inputs(self.x, twist_to_command(msg)) if self.robot else \
+                array_to_vector(msg, self.model.m, "command")
         except InputError as exc:
             self.rejected += 1
             self.get_logger().warning(f"rejected command: {exc}", throttle_duration_sec=2.0)

@@ -1,13 +1,14 @@
-"""Standard robot messages <-> the unicycle's vectors: nav_msgs/Odometry, geometry_msgs/Twist(Stamped),
+"""Standard robot messages <-> a planar robot model's vectors: nav_msgs/Odometry, geometry_msgs/Twist(Stamped),
 geometry_msgs/PoseStamped.
 
 Conventions (REP 103 / REP 105): SI units (m, rad, m/s, rad/s); the pose is the base frame
 (`base_link`, x forward, z up) in the odometry frame (`odom`); the twist of an Odometry and a
 velocity command are in the base frame (v = linear.x, omega = angular.z).
 
-The robot state is [x, y, theta] and the command [v, omega]: `check_robot_model` makes sure the
-configured model names its states and inputs so. Every conversion from a message validates it
-and raises InputError with the reason (wrong frame, NaN or infinite values, a quaternion of zero
+The messages carry a pose [x, y, yaw] and a velocity [linear, angular]; the model file's `planar`
+section says which states they are and which inputs a velocity command is (`check_robot_model` returns
+that map: the unicycle's [v, omega] directly, a car-like model's steering angle through v tan(delta) / L).
+Every conversion from a message validates it and raises InputError with the reason (wrong frame, NaN or infinite values, a quaternion of zero
 norm), so the node can refuse it, count it and keep its last good value.
 """
 
@@ -24,17 +25,49 @@ from nav_msgs.msg import Odometry
 from ..core.errors import ConfigError, InputError
 from ..core.problem.models import Model
 
-ROBOT_STATES = ("x", "y", "theta")
-ROBOT_INPUTS = ("v", "omega")
 #: a quaternion this close to zero carries no rotation at all (a message left at its defaults)
 MIN_QUATERNION_NORM = 1e-6
 
 
-def check_robot_model(model: Model) -> None:
-    """ConfigError unless the model's state is (x, y, theta) and its input (v, omega)."""
-    if model.state_names != ROBOT_STATES or model.input_names != ROBOT_INPUTS:
-        raise ConfigError(f"interface 'robot' needs a model with states {ROBOT_STATES} and inputs {ROBOT_INPUTS}; "
-                          f"model {model.name!r} has {model.state_names} and {model.input_names}")
+class RobotModelMap:
+    """A planar robot model's state <-> pose [x, y, yaw] and input <-> velocity command [linear, angular]."""
+
+    def __init__(self, model: Model) -> None:
+        planar = model.planar
+        self.indices = (planar.x, planar.y, planar.yaw)
+        self.n = model.n
+        self.command, self.from_command = planar.command, planar.from_command
+
+    def state(self, pose: Sequence[float]) -> np.ndarray:
+        """The state x[n] of a pose [x, y, yaw] (every state of a robot-interface model is part of its pose)."""
+        x = np.zeros(self.n)
+        x[list(self.indices)] = pose
+        return x
+
+    def pose(self, x: Sequence[float]) -> list[float]:
+        return [float(x[i]) for i in self.indices]
+
+    def twist(self, x: Sequence[float], u: Sequence[float]) -> list[float]:
+        """[linear (m/s), angular (rad/s)] that the input u gives at state x."""
+        return np.asarray(self.command(x, u), float).ravel().tolist()
+
+    def inputs(self, x: Sequence[float], twist: Sequence[float]) -> np.ndarray:
+        """The input u[m] a velocity command [linear, angular] means at state x; InputError if it has none."""
+        u = np.asarray(self.from_command(x, twist), float).ravel()
+        if not np.all(np.isfinite(u)):
+            raise InputError(f"cmd_vel {list(twist)} means no finite input of the model: {u.tolist()}")
+        return u
+
+
+def check_robot_model(model: Model) -> RobotModelMap:
+    """The map of a model the robot interface can drive; ConfigError unless its model file declares `planar` with
+    the yaw a state, a command and from_command, and its state is exactly the pose (x, y, yaw)."""
+    planar = model.planar
+    if planar is None or planar.yaw is None or planar.command is None or model.n != 3:
+        raise ConfigError(f"interface 'robot' needs a model whose state is a planar pose (x, y, yaw) with a velocity "
+                          f"command declared (model file `planar`: x, y, yaw, command, from_command); model "
+                          f"{model.name!r} has states {model.state_names}" + ("" if planar else " and no `planar`"))
+    return RobotModelMap(model)
 
 
 def _finite(name: str, *values: float) -> tuple[float, ...]:

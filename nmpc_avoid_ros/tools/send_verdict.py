@@ -87,14 +87,16 @@ class ControllerWatch:
 
     def check_target(self, values: list[float], timeout: float) -> None:
         """NmpcError (exit 2) if the controller's model takes another number of target values than `values`."""
-        from ..core.problem.models import MODELS, make_model
+        from ..core.errors import ConfigError
+        from ..core.problem.models import make_model
 
         params = self.parameters(["model", "sample_time"], timeout)
         self.sample_time = float(params.get("sample_time") or self.sample_time)
         model = params.get("model")
-        if model not in MODELS:  # not this package's controller, or a model this send does not know
+        try:
+            p = make_model(model).p
+        except ConfigError:  # not this package's controller, or a model this process cannot build (its file)
             return
-        p = make_model(model).p
         if len(values) != p:
             raise NmpcError(f"target: {self.reader}'s model {model} takes {p} value{'s' * (p != 1)} (p = {p}), "
                             f"got {len(values)}: {' '.join(f'{v:g}' for v in values)}")

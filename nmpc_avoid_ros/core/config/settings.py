@@ -15,16 +15,15 @@ so that a typo never silently falls back to a default.
 from __future__ import annotations
 
 import dataclasses
-import sys
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
-import yaml
-
 from ..errors import ConfigError
-from ..problem.models import DISCRETISATIONS, MODELS
+from ..problem.models import DISCRETISATIONS, check_model_name, make_model
+
+# the params-file readers live in params_file.py; the tools and tests import them from here too
+from .params_file import NAMESPACE_WILDCARDS, ParamsFile, default_config_path, load_params_file, params_file_node  # noqa: F401
 from .schema import Setting, normalise, schema, setting
 
 #: solver paths: name -> one-line description (core/nlp/tracking.py builds them)
@@ -50,7 +49,9 @@ class ControllerSettings:
     between samples without a rebuild.
     """
 
-    model: str = setting("van_der_pol", "plant model of the prediction", choices=tuple(sorted(MODELS)))
+    model: str = setting("van_der_pol", "plant model of the prediction: a shipped model (van_der_pol, "
+                         "double_integrator_2d, unicycle, unicycle_pose, bicycle), one a package registers, or the "
+                         "path of a model file (docs/own_model.md)")
     sample_time: float = setting(0.5, "sample time Ts of the controller and of the discretisation, s",
                                  low=0.0, low_open=True)
     horizon: int = setting(5, "prediction horizon N (samples)", low=1, high=2000)  # an upper limit keeps
@@ -200,6 +201,7 @@ class ControllerSettings:
 
     def _check_relations(self) -> None:
         """What one setting's declaration cannot say: relations between values."""
+        check_model_name(self.model)
         for lo_name, hi_name in (("state_min", "state_max"), ("input_min", "input_max")):
             lo, hi = getattr(self, lo_name), getattr(self, hi_name)
             if len(lo) != len(hi):
@@ -230,11 +232,18 @@ class ControllerSettings:
         unknown = sorted(map(str, set(params) - set(SETTINGS) - NODE_ONLY_PARAMETERS))
         if unknown:
             raise ConfigError(f"unknown controller parameter(s): {', '.join(unknown)}")
-        return cls(**{k: _yaml_number(SETTINGS[k], v) for k, v in params.items() if k in SETTINGS})
+        values = {k: _yaml_number(SETTINGS[k], v) for k, v in params.items() if k in SETTINGS}
+        if "model" in values and not set(BOUNDS) <= set(values):  # Z's box from the model file where unset
+            values = {**make_model(str(values["model"])).bounds, **values}
+        return cls(**values)
 
     def structure_key(self) -> tuple:
         """The fields that define the NLP and its solver (equal keys -> the same NLP and solver)."""
         return tuple(getattr(self, name) for name, spec in SETTINGS.items() if not spec.runtime)
+
+
+#: the settings of Z's box, which a model file's `bounds` provide where a config leaves them out
+BOUNDS = ("state_min", "state_max", "input_min", "input_max")
 
 
 def _yaml_number(spec: Setting, value: Any) -> Any:
@@ -333,68 +342,3 @@ NODE_ONLY_PARAMETERS = frozenset(NODE_SETTINGS) | {"use_sim_time"}
 
 #: one-line documentation of every controller setting
 SETTING_DOCS: dict[str, str] = {name: spec.description for name, spec in SETTINGS.items()}
-
-
-#: prefixes of a params file's node key that match any namespace (rcl's wildcards): the shipped files
-#: key `/**/controller`, so that `-r __ns:=/robot1` and a launch file's namespace keep their settings
-NAMESPACE_WILDCARDS = ("/**/", "/*/")
-
-
-def params_file_node(key: str) -> str:
-    """The node a params file's top-level key names, for the offline tools (which run no namespace):
-    `controller`, `/controller` and `/**/controller` all name `controller`."""
-    for wildcard in NAMESPACE_WILDCARDS:
-        if key.startswith(wildcard):
-            return key[len(wildcard):]
-    return key.lstrip("/")
-
-
-@dataclass(frozen=True)
-class ParamsFile:
-    """A ROS 2 params file: node name -> its `ros__parameters` mapping (the sections of one node, in
-    any namespace or the root one, merged in the file's order: a later key wins)."""
-
-    path: Path | None
-    nodes: dict[str, dict[str, Any]] = field(default_factory=dict)
-
-    def section(self, node: str) -> dict[str, Any]:
-        """Parameters of one node ({} if absent)."""
-        return dict(self.nodes.get(node, {}))
-
-
-def load_params_file(path: str | Path) -> ParamsFile:
-    """Read a ROS 2 params file; ConfigError for a missing, unreadable or malformed file."""
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise ConfigError(f"cannot read params file {p}: {exc.strerror or exc}") from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"params file {p} is not UTF-8 text (byte {exc.start})") from None
-    except ValueError as exc:  # e.g. a NUL byte in the path
-        raise ConfigError(f"cannot read params file {p!r}: {exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"params file {p} is not valid YAML: {exc}") from None
-    except RecursionError:
-        raise ConfigError(f"params file {p} is nested too deeply to be a params file") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"params file {p}: expected node names as top-level keys")
-    nodes: dict[str, dict[str, Any]] = {}
-    for key, body in data.items():
-        name = params_file_node(str(key))
-        if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
-            raise ConfigError(f"params file {p}: node {name!r} needs a 'ros__parameters' mapping")
-        nodes[name] = {**nodes.get(name, {}), **body["ros__parameters"]}
-    return ParamsFile(p, nodes)
-
-
-def default_config_path() -> Path:
-    """The shipped van der Pol params file: the source tree's, else the installed share/ copy."""
-    source = Path(__file__).resolve().parents[3] / "config" / "van_der_pol.yaml"
-    installed = Path(sys.prefix) / "share" / "nmpc_avoid_ros" / "config" / "van_der_pol.yaml"
-    for candidate in (source, installed):
-        if candidate.exists():
-            return candidate
-    raise ConfigError(f"cannot find the shipped van_der_pol.yaml (looked at {source} and {installed})")
