@@ -176,10 +176,12 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
         """(state-plane point, output-plane point or None) of x under u."""
         return x[list(s.plane)], mdl.output(x, u)[list(s.output_plane)] if output_frame_available else None
 
-    def avoidance(x, u, elapsed: float = 0.0):
+    def avoidance(x, u, elapsed: float = 0.0, keep_in_margin: float | None = None):
         """The region functions g at one point (keep-in expressions, then obstacle slots), with
-        moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts)."""
-        return ca.vertcat(keep_active * (keep_g(x, u) + s.keep_in_margin),
+        moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts); the keep-in expressions
+        tightened by `keep_in_margin` (default: the settings')."""
+        margin = s.keep_in_margin if keep_in_margin is None else keep_in_margin
+        return ca.vertcat(keep_active * (keep_g(x, u) + margin),
                           slots.depths(slot_par, *points(x, u), elapsed))
 
     bends = keep_in_bends([k.g for k in keep_in], xs, us)
@@ -197,8 +199,9 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
                         u_prev, rate_on, np.array(s.output_weights, float) if s.output_weights else None)
 
 
-def depth_function(parts: ProblemParts, model: Model) -> ca.Function:
+def depth_function(parts: ProblemParts, model: Model, keep_in_margin: float | None = None) -> ca.Function:
     """(x [n], u [m], p [n_param], elapsed s) -> region functions g [n_depth] (> 0 inside a region to
-    avoid), moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts; steady state: N Ts)."""
+    avoid), moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts; steady state: N Ts);
+    the keep-in expressions tightened by `keep_in_margin` (default: the settings', as planned)."""
     xs, us, elapsed = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m), ca.SX.sym("elapsed")
-    return ca.Function("region_depth", [xs, us, parts.par, elapsed], [parts.avoidance(xs, us, elapsed)])
+    return ca.Function("region_depth", [xs, us, parts.par, elapsed], [parts.avoidance(xs, us, elapsed, keep_in_margin)])

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..errors import InputError
-from ..nlp.parts import problem_parts
+from ..nlp.parts import depth_function, problem_parts
 from ..nlp.search import VIOLATION_TOLERANCE
 from ..nlp.stop_at import StopAt
 from ..nlp.tracking import COLD_START_TIME_FACTOR, SEARCH_SHARE, NlpBase
@@ -44,6 +44,13 @@ CANDIDATES = ("shift", "steady", "safe", "recovery")
 #: plans that squeezed between an ellipse and |x1 x2| <= 2 at a keep-in depth of 1.1e-3 while an
 #: input that stays clear existed (test/test_cold_start.py)
 PLAN_OVERRIDE = VIOLATION_TOLERANCE
+#: the keep-in expressions are judged tightened by `keep_in_margin` up to this much (the penetration tolerance):
+#: a larger margin is the plan's room, not the set. Judged with the whole margin, a state a hair inside the
+#: margin's band (the live robot cruising at 1.197 m/s against a 1.2 m/s limit planned at 1.195) made the first
+#: sub-steps of every plan from it "penetration" (they share x(0)'s slack), and the safe input braked the robot
+#: (test/test_fallback_keep_in_margin.py). With it a row counts as penetrating when the set itself is entered
+#: (g > 0 for any margin >= the tolerance, g > 1e-3 without a margin, as before)
+JUDGED_KEEP_IN_MARGIN = VIOLATION_TOLERANCE
 #: iteration budget of the recovery solve
 RECOVERY_ITERATIONS = 100
 #: a recovery solve is not started with less time than this left before its end, s
@@ -86,7 +93,10 @@ class FallbackSelector:
         path = model.discrete_path(settings.sample_time, settings.discretization, settings.integration_steps)
         x0, par = ca.SX.sym("x0", n), ca.SX.sym("p", parts.par.numel())
         U = ca.SX.sym("U", m, H)
-        depth = nlp.region_depth
+        # the regions as planned (the obstacles with their margins), the keep-in sets with at most
+        # JUDGED_KEEP_IN_MARGIN of their margin
+        depth = self._judged_depth = depth_function(parts, model,
+                                                    min(settings.keep_in_margin, JUDGED_KEEP_IN_MARGIN))
         x_lo, x_hi = np.array(settings.state_min, float), np.array(settings.state_max, float)
         states, excess = [x0], []
         x = x0
