@@ -326,3 +326,48 @@ def test_the_two_phases_are_reported_where_the_bag_has_them(vdp_metrics, tmp_pat
     assert metrics["feedback"]["answered"] == len(answered) and metrics["feedback"]["prepared"] == len(X1) - 1
     assert metrics["feedback"]["feedback_ms"]["median"] == pytest.approx(np.median([(k + 1) * 0.01 for k in answered]))
     assert metrics["feedback"]["preparation_ms"]["median"] == pytest.approx(20.0)
+
+
+@pytest.mark.parametrize("config", sorted(p.name for p in CONFIG.glob("*.yaml")))
+def test_analyze_and_its_html_report_run_on_a_bag_of_every_shipped_config(tmp_path, config):
+    """Every shipped params file: a short run recorded as its nodes publish it (the plant's initial state moving
+    slowly, zero commands, the scenario's target on `target`, or as a goal on `goal_pose` for the robot
+    interface), analysed with the HTML report: its own model and config recognised, no error."""
+    params = load_params_file(CONFIG / config)
+    section = params.section("controller")
+    settings = ControllerSettings.from_params(section)
+    robot = section.get("interface") == "robot"
+    model = make_model(settings.model)
+    x0 = np.array(params.section("plant").get("initial_state", np.zeros(model.n)), float)
+    target = [float(v) for v in params.section("scenario")["target"]]
+    u = np.zeros(model.m)
+    ts = settings.sample_time
+    path = tmp_path / "run.mcap"
+    with Ros2McapWriter(path) as bag:
+        bag.add_metadata(PARAMETERS_RECORD, parameters_record(
+            "/controller", {**_settings_fields(settings), "interface": section.get("interface", "array")}, 0))
+        if robot:
+            bag.write_message("/goal_pose", _goal(*target[:2]), T0 - NS // 2)
+        else:
+            bag.write_message("/target", Float64MultiArray(data=target), T0 - NS // 2)
+        for k in range(6):
+            x = x0.copy()
+            x[0] += 0.05 * k
+            t = T0 + round(k * ts * NS)
+            y = np.asarray(model.output(x, u), float).ravel()
+            if robot:
+                bag.write_message("/odom", _odometry(x[0], x[1], x[2]), t)
+                bag.write_message("/cmd_vel", TwistStamped(twist=_twist(0.0, 0.0)), t + 2 * 10**6)
+            else:
+                bag.write_message("/state", Float64MultiArray(data=x.tolist()), t)
+                bag.write_message("/command", Float64MultiArray(data=u.tolist()), t + 2 * 10**6)
+            bag.write_message("/diagnostics", _sample(x.tolist(), u.tolist(), y.tolist(), t * 1e-9), t + 3 * 10**6)
+    out = tmp_path / "o"
+    assert analyze_main([str(path), "--out", str(out), "--html", str(out / "report.html")]) == 0
+    (metrics,) = json.loads((out / "metrics.json").read_text())["bags"]
+    assert metrics["model"] == settings.model and metrics["samples"] == 6
+    assert metrics["config"]["interface"] == ("robot" if robot else "array")
+    assert metrics["config"]["closest_shipped"]["file"] == f"config/{config}"
+    assert metrics["segments"][0]["target"] == target[: len(metrics["segments"][0]["target"])]
+    assert ("max_abs_x1x2" in metrics["clearance"]["at_samples"]) == (settings.model == "van_der_pol")
+    assert (out / "report.html").stat().st_size > 10_000

@@ -167,7 +167,8 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
     y_a = [_float_list(v["y_a"]) for _, v in samples]
     p = len(y_a[0]) or make_model(settings.model).p
     interface = controller_interface(bag, node_parameters(bag)[0].get(controller_node or ""))
-    events = target_events(bag, p, interface, controller_node)
+    # a model with an angle output (unicycle_pose) takes the goal's heading too (nodes/controller_io.py)
+    events = target_events(bag, p, interface, controller_node, bool(make_model(settings.model).angle_outputs))
     stamps = [stamp for stamp, _ in samples]
     targets = targets_at(events, stamps, p)
     regions = regions_at(bag, settings, interface, stamps, controller_node)

@@ -99,9 +99,11 @@ def _checked(topic: str, check: Any) -> tuple[np.ndarray | None, str | None]:
         return None, str(exc) or f"{topic}: not a valid target"
 
 
-def target_events(bag: Bag, p: int, interface: Interface, node: str | None = None) -> list[TargetEvent]:
+def target_events(bag: Bag, p: int, interface: Interface, node: str | None = None,
+                  with_heading: bool = False) -> list[TargetEvent]:
     """Every target message of the bag by log time, each accepted or refused as the controller would
-    (module doc); the `target` parameter first, at time -1 (before any message)."""
+    (module doc); the `target` parameter first, at time -1 (before any message). `with_heading`: a goal's
+    yaw is part of the target, as the controller takes it for a model with an angle output (unicycle_pose)."""
     events = []
     if interface.initial_target is not None:
         value, reason = _checked("target", lambda: validate_vector("target parameter", interface.initial_target, p))
@@ -115,9 +117,9 @@ def target_events(bag: Bag, p: int, interface: Interface, node: str | None = Non
         from ..ros.robot import goal_to_target  # message-free: reads the decoded fields
 
         for stamp, msg in bag.topics.get(goal, []):
-            value, reason = _checked(goal, lambda m=msg: goal_to_target(m, interface.odom_frame))
+            value, reason = _checked(goal, lambda m=msg: goal_to_target(m, interface.odom_frame, with_heading))
             if value is not None and len(value) != p:
-                value, reason = None, f"goal_pose: a position of 2 values, the model's output has {p}"
+                value, reason = None, f"goal_pose: a target of {len(value)} values, the model's output has {p}"
             events.append(TargetEvent(stamp, goal, value, reason))
     events.sort(key=lambda e: e.time_ns)
     return events
