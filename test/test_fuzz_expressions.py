@@ -60,7 +60,7 @@ def _ref(fn):
 
 REFERENCE = {
     "abs": abs, "sqrt": _ref(math.sqrt), "exp": _ref(math.exp), "log": _ref(math.log), "sin": math.sin,
-    "cos": math.cos, "tan": math.tan, "atan2": math.atan2, "tanh": math.tanh, "min": min, "max": max,
+    "cos": math.cos, "tan": math.tan, "atan": math.atan, "atan2": math.atan2, "tanh": math.tanh, "min": min, "max": max,
     "hypot": math.hypot,
 }
 assert set(REFERENCE) == set(ALLOWED_FUNCTIONS)  # a new documented function needs a reference here

@@ -187,6 +187,8 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
             f"mode={'lockstep' if self.lockstep else 'timer'} "
             f"target={None if self.target is None else self.target.tolist()} "
             f"solver built in {self.build_seconds:.2f} s{self._cache_note()}")
+        for warning in self.controller.assumption_warnings:
+            self.get_logger().warning(warning)
         self.startup = {"solver_build_s": f"{self.build_seconds:.6f}", "ready_time": f"{time.time():.6f}"}
 
     def reset_loop(self) -> None:

@@ -8,8 +8,8 @@ velocity command are in the base frame (v = linear.x, omega = angular.z).
 The messages carry a pose [x, y, yaw] and a velocity [linear, angular]; the model file's `planar`
 section says which states they are and which inputs a velocity command is (`check_robot_model` returns
 that map: the unicycle's [v, omega] directly, a car-like model's steering angle through v tan(delta) / L).
-Every conversion from a message validates it and raises InputError with the reason (wrong frame, NaN or infinite values, a quaternion of zero
-norm), so the node can refuse it, count it and keep its last good value.
+Every conversion from a message validates it and raises InputError with the reason (wrong frame,
+NaN or infinite values, a quaternion of zero norm), so the node can refuse it, count it and keep its last good value.
 """
 
 from __future__ import annotations

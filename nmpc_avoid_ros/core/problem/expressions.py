@@ -34,6 +34,7 @@ ALLOWED_FUNCTIONS: dict[str, Callable[..., Expr]] = {
     "sin": ca.sin,
     "cos": ca.cos,
     "tan": ca.tan,
+    "atan": ca.atan,
     "atan2": ca.atan2,
     "tanh": ca.tanh,
     "min": ca.fmin,  # 2 arguments

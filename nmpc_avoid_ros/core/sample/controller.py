@@ -35,6 +35,7 @@ from ..nlp.stagewise import COLD_START_ITERATIONS, make_nlp
 from ..nlp.tiers import TieredNlp
 from ..nlp.tracking import COLD_START_TIME_FACTOR, SEARCH_SHARE, NlpBase, TrackingNlp
 from ..nlp.worker import SolveWorker
+from ..problem.assumptions import assumption_5_warnings
 from ..problem.models import Model
 from ..problem.regions import Region
 from .answers import SampleAnswers
@@ -71,6 +72,11 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         self.settings = settings or ControllerSettings()
         self.nlp = make_nlp(self.settings, model)
         self.model = self.nlp.model
+        s = self.settings
+        #: where the paper's assumptions fail for this model and Z (core/problem/assumptions.py), for people
+        self.assumption_warnings = assumption_5_warnings(
+            self.model, self.model.discrete(s.sample_time, s.discretization, s.integration_steps), s.state_min,
+            s.state_max, s.input_min, s.input_max, s.steady_state_scale)
         # A cold start (no previous plan) begins from a straight line that may cross obstacles,
         # far from any solution: there the fast paths' line searches stall (measured: SQP beside
         # an ellipse; FATROP on the mobile robot for N >= 10) and a real-time budget is too small.
