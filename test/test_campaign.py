@@ -17,12 +17,14 @@ from nmpc_avoid_ros.evaluation.campaign.cli import main
 from nmpc_avoid_ros.evaluation.campaign.reachability import ReachableSet, planar_passage, vdp_passage
 from nmpc_avoid_ros.evaluation.campaign.running import JSON_NAME, JSONL_NAME, read_jsonl
 from nmpc_avoid_ros.evaluation.campaign.scenarios import (
+    bicycle_scenario,
     families,
     load_settings,
     make_specs,
     robot_scenario,
     unicycle_scenario,
 )
+from nmpc_avoid_ros.evaluation.campaign.scoring import output_distance
 
 # seed 2: vdp-0004 (unreachable target -6.4) and vdp-0005 (target 0.8) have no ellipse
 SEED = "2"
@@ -270,3 +272,26 @@ def test_the_unicycle_family_runs_the_robot_scenes_with_the_unicycle_and_counts_
     assert 0 <= record["fallbacks_far"] <= record["fallbacks"]
     summary = json.loads((out / "summary.json").read_text())["summary"]
     assert set(summary) == {"unicycle"} and "fallbacks_far" in summary["unicycle"]
+
+
+def test_the_bicycle_family_drives_to_goal_poses_and_judges_headings_the_short_way(tmp_path):
+    """Opt-in (--bicycle N): the unicycle family's scenes with a goal heading; Y_r's nearest admissible point keeps
+    y*'s heading (any heading is a steady state) and a heading 2 pi away is no error."""
+    bicycle = families()["bicycle"]
+    settings = load_settings(bicycle.config)
+    model = make_model(settings.model)
+    for seed in range(10):
+        spec = bicycle_scenario(np.random.default_rng(seed), settings, model)
+        assert len(spec["target"]) == 3 and -np.pi <= spec["target"][2] < np.pi and np.hypot(*spec["target"][:2]) < 10
+    reach = ReachableSet(settings, model)
+    y_t = np.array([3.0, 0.0, 1.0])
+    wall = Ellipse((3.0, 0.0), (0.5, 0.5), frame="output")
+    nearest = reach.best_admissible(y_t, reach.project(y_t), [wall])
+    assert nearest[2] == pytest.approx(1.0) and np.hypot(*(nearest[:2] - y_t[:2])) == pytest.approx(0.5, abs=0.01)
+    turned = np.array([[3.0, 0.0, 1.0 + 2 * np.pi], [3.0, 0.0, 1.1]])
+    np.testing.assert_allclose(output_distance(model, turned, y_t), [0.0, 0.1], atol=1e-12)
+    out = tmp_path / "b"
+    assert main(["--out", str(out), "--vdp", "0", "--robot", "0", "--bicycle", "1", "--bicycle-steps", "10",
+                 "--no-progress", "--no-plots"]) == 0
+    (record,) = read_jsonl(out / JSONL_NAME).values()
+    assert record["id"] == "bicycle-0000" and len(record["final_y"]) == 3

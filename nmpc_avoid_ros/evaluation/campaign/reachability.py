@@ -104,21 +104,31 @@ class ReachableSet:
         y_t = np.asarray(y_t, float)
         if self.admissible(y_star[None, :], regions)[0]:
             return y_star
-        p = self.model.p
-        if p == 1:
-            grid = np.arange(self.box[0, 0], self.box[0, 1] + 5e-4, 1e-3)[:, None]
-            return self._nearest(grid, y_t, regions)
-        if p == 2:
-            axes = [np.arange(lo, hi + 0.025, 0.05) for lo, hi in self.box]
+        # an angle output (a pose's heading) leaves the steady state's admissibility to the other outputs: it is
+        # taken as y*'s, and the nearest point is searched over the rest
+        angles = [i for i, _ in self.model.angle_outputs]
+        free = [i for i in range(self.model.p) if i not in angles]
+
+        def full(points: np.ndarray) -> np.ndarray:
+            grid = np.tile(y_star, (len(points), 1))
+            grid[:, free] = points
+            return grid
+
+        box = self.box[free]
+        if len(free) == 1:
+            grid = np.arange(box[0, 0], box[0, 1] + 5e-4, 1e-3)[:, None]
+            return self._nearest(full(grid), y_t, regions)
+        if len(free) == 2:
+            axes = [np.arange(lo, hi + 0.025, 0.05) for lo, hi in box]
             grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
-            coarse = self._nearest(grid, y_t, regions)
+            coarse = self._nearest(full(grid), y_t, regions)
             if not np.all(np.isfinite(coarse)):
                 return coarse
             fine = [np.clip(np.arange(c - 0.1, c + 0.1 + 1e-3, 0.002), lo, hi)
-                    for c, (lo, hi) in zip(coarse, self.box)]
+                    for c, (lo, hi) in zip(coarse[free], box)]
             grid = np.stack(np.meshgrid(*fine, indexing="ij"), -1).reshape(-1, 2)
-            return self._nearest(grid, y_t, regions)
-        raise ConfigError(f"campaign: best admissible point for {p}-d outputs is not implemented")
+            return self._nearest(full(grid), y_t, regions)
+        raise ConfigError(f"campaign: best admissible point for {len(free)}-d outputs is not implemented")
 
     def _nearest(self, grid: np.ndarray, y_t: np.ndarray, regions: Sequence[Region]) -> np.ndarray:
         ok = self.admissible(grid, regions)

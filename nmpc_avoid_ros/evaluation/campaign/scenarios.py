@@ -148,6 +148,13 @@ def unicycle_scenario(rng: np.random.Generator, settings: ControllerSettings, mo
             return {**spec, "x0": x0.tolist()}
 
 
+def bicycle_scenario(rng: np.random.Generator, settings: ControllerSettings, model: Model) -> dict[str, Any]:
+    """The unicycle family's kind of scene (at rest, start and goal inside the arena, 0-4 ellipses; its own seed
+    code) for the car-like robot, whose goal is a pose: a heading drawn uniformly in [-pi, pi)."""
+    spec = unicycle_scenario(rng, settings, model)
+    return {**spec, "target": [*spec["target"][:2], float(rng.uniform(-math.pi, math.pi))]}
+
+
 #: robot speed the crossing times of the moving family are planned with (the config's limit is 1.2 m/s)
 NOMINAL_SPEED = 1.0
 #: obstacle speeds of the moving family, m/s
@@ -208,6 +215,8 @@ FAMILIES: tuple[Family, ...] = (
            "robot among moving ellipses", schedule=moving_schedule),
     # not run unless asked for (--unicycle N): scenes of the robot family's kind with config/unicycle.yaml
     Family("unicycle", 4, "unicycle.yaml", 0, 200, unicycle_scenario, _planar_way, "unicycle"),
+    # not run unless asked for (--bicycle N): the car-like robot (config/bicycle.yaml) to goal poses
+    Family("bicycle", 5, "bicycle.yaml", 0, 200, bicycle_scenario, _planar_way, "car-like robot"),
 )
 
 

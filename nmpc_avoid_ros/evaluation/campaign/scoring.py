@@ -160,14 +160,19 @@ def score_scenario(spec: dict[str, Any], family: Family, tools: Tools) -> dict[s
     return classify(record)
 
 
+def output_distance(model: Model, y: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """|y_k - reference| for outputs y [K, p], angle outputs the short way round (a pose's heading) [K]."""
+    return np.linalg.norm([model.output_error(row, reference) for row in np.atleast_2d(y)], axis=1)
+
+
 def outcome_section(s: Scored) -> dict[str, Any]:
     """Where the run ended relative to y_t, y* and y~, and why it stopped short."""
     run, y = s.run, s.y
     reachable = bool(np.linalg.norm(s.y_star - s.y_t) < REACHABLE_TOLERANCE)
     free_ok = bool(np.all(np.isfinite(s.y_free)))
     blocked_target = bool(not free_ok or np.linalg.norm(s.y_free - s.y_star) > REACHABLE_TOLERANCE)
-    err_best = np.linalg.norm(y - s.y_star, axis=1)
-    err_free = np.linalg.norm(y - s.y_free, axis=1) if free_ok else np.full(len(y), np.nan)
+    err_best = output_distance(s.model, y, s.y_star)
+    err_free = output_distance(s.model, y, s.y_free) if free_ok else np.full(len(y), np.nan)
     motion = float(np.max(np.abs(run.x[-REST_WINDOW - 1:] - run.x[-1])))
     at_rest = motion < REST_TOLERANCE
     settle = settling_step(err_best, 0.0, SETTLING_TOLERANCE)
@@ -188,7 +193,7 @@ def outcome_section(s: Scored) -> dict[str, Any]:
         "reachable": reachable, "y_star": _vec(s.y_star), "y_admissible": _vec(s.y_free),
         "target_covered": blocked_target,
         "final_state": _vec(run.x[-1]), "final_y": _vec(y[-1]),
-        "error_to_target": float(np.linalg.norm(y[-1] - s.y_t)),
+        "error_to_target": float(output_distance(s.model, y[-1:], s.y_t)[0]),
         "error_to_best": float(err_best[-1]), "error_to_admissible": float(err_free[-1]),
         "final_motion": motion, "at_rest": bool(at_rest),
         "settling_step": settle,
