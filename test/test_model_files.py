@@ -118,6 +118,9 @@ BROKEN = {
     "eval in an expression": (PENDULUM.replace("theta: omega", "theta: __import__('os')"), 7, "not allowed"),
     "not YAML": ("name: [unclosed\n", 2, "not YAML"),
     "not a mapping": ("- 1\n- 2\n", 0, "a model file is a mapping"),
+    "both dynamics and a map": (PENDULUM + "sample_time: 0.1\ndiscrete: {theta: theta, omega: omega}\n", 0,
+                                "not both or neither"),
+    "a map without its sample time": (PENDULUM.replace("dynamics:", "discrete:"), 6, "goes with a `discrete` map"),
     "a parameter that is not a number": (PENDULUM.replace("g: 9.81", "g: heavy"), 2, "finite number"),
 }
 
@@ -155,3 +158,35 @@ def test_a_model_file_with_any_key_replaced_by_junk_is_refused_cleanly_or_loads(
         assert "\n" not in str(exc) and str(exc).startswith(str(path))
     else:  # junk that happens to be valid (an empty `units`, a `plane` of two states): a complete model
         assert model.n == 2 and model.m == 1 and model.p == 1
+
+
+#: the pendulum as a discrete map: one explicit Euler step of 0.1 s, written out
+PENDULUM_MAP = PENDULUM.replace("""dynamics:
+  theta: omega
+  omega: -g/l*sin(theta) - b*omega + torque""", """sample_time: 0.1
+discrete:
+  theta: theta + 0.1*omega
+  omega: omega + 0.1*(-g/l*sin(theta) - b*omega + torque)""")
+
+
+def test_a_model_declared_as_a_discrete_map_runs_the_loop_its_euler_twin_runs(tmp_path):
+    """The map is the continuous pendulum's Euler step: the same closed loop on the prediction model's own plant."""
+    assert "discrete:" in PENDULUM_MAP
+    mapped, continuous = write(tmp_path, PENDULUM_MAP, "map.yaml"), write(tmp_path, PENDULUM, "ode.yaml")
+    base = {"horizon": 10, "sample_time": 0.1, "mu": 0.0, "keep_in": [], "state_weights": [1.0, 0.1],
+            "input_weights": [0.01]}
+    runs = [run_closed_loop(NmpcController(ControllerSettings.from_params({**base, "model": str(path)})),
+                            [0.0, 0.0], [1.0], 40, "euler") for path in (mapped, continuous)]
+    np.testing.assert_allclose(runs[0].x, runs[1].x, atol=1e-6)
+    assert abs(runs[0].x[-1, 0] - 1.0) < 1e-3
+    model = load_model_file(mapped)
+    with pytest.raises(ConfigError, match="discrete map over 0.1 s"):
+        model.discrete(0.2)
+    with pytest.raises(ConfigError, match="integration_steps must be 1"):
+        model.discrete(0.1, "rk4", 4)
+    with pytest.raises(ConfigError, match="no continuous plant"):
+        run_closed_loop(NmpcController(ControllerSettings.from_params({**base, "model": str(mapped)})),
+                        [0.0, 0.0], [1.0], 2, "continuous")
+    flow = model.flow()  # the straight line between the samples, exact at the sample
+    np.testing.assert_allclose(np.asarray(flow([0.2, 0.5], [1.0], 0.1)).ravel(),
+                               np.asarray(model.discrete(0.1)([0.2, 0.5], [1.0])).ravel())

@@ -44,6 +44,9 @@ class ContinuousPlant:
     """x' = f(x, u) integrated under zero-order hold; `advance(x, u, dt)` -> x after dt seconds."""
 
     def __init__(self, model: Model, rtol: float = 1e-10, atol: float = 1e-12) -> None:
+        if model.discrete_map is not None:
+            raise ConfigError(f"model {model.name} is a discrete map over {model.map_sample_time} s: there is no "
+                              f"continuous plant to integrate; simulate its map (plant euler, integration euler)")
         self.model = model
         self._f = model.dynamics
         self.rtol, self.atol = rtol, atol

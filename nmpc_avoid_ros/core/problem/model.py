@@ -70,6 +70,10 @@ class Model:
         bounds: the model file's Z: state_min/state_max/input_min/input_max, the defaults of a config's bounds.
         parameters: the constants the model was built with (name -> value).
         source: the model file it was read from ("" for a model built in Python).
+        discrete_map: a discrete-time model's own map (x[n], u[m]) -> x(k+1)[n] over `map_sample_time` s, or
+            None (continuous time). Its `dynamics` are then (F(x, u) - x) / Ts, zero exactly at its equilibria;
+            it has no state between its samples: it predicts with integration_steps 1 at its own sample time,
+            latency prediction draws the straight line between two samples, and only its map simulates it.
     """
 
     name: str
@@ -90,6 +94,8 @@ class Model:
     parameters: dict[str, float] = field(default_factory=dict, compare=False)
     source: str = ""
     description: str = ""
+    discrete_map: ca.Function | None = None
+    map_sample_time: float | None = None
 
     def nearest_target(self, y_t: np.ndarray, x: np.ndarray) -> np.ndarray:
         """y_t [p] with each angle output moved by whole turns to within pi of its state in x [n] (the turn the
@@ -150,6 +156,9 @@ class Model:
             raise ConfigError(f"integration_steps must be a whole number >= 1, got {steps}")
         x = ca.SX.sym("x", self.n)
         u = ca.SX.sym("u", self.m)
+        if self.discrete_map is not None:
+            self._check_map(sample_time, steps)
+            return ca.Function(f"{self.name}_map_path", [x, u], [self.discrete_map(x, u)], ["x", "u"], ["points"])
         points = _sub_steps(self.dynamics, x, u, sample_time / int(steps), int(steps), method)
         return ca.Function(f"{self.name}_{method}_path", [x, u], [ca.horzcat(*points)], ["x", "u"], ["points"])
 
@@ -160,8 +169,19 @@ class Model:
         if method not in DISCRETISATIONS:
             raise ConfigError(f"discretization must be one of {DISCRETISATIONS}, got {method!r}")
         x, u, dt = ca.SX.sym("x", self.n), ca.SX.sym("u", self.m), ca.SX.sym("dt")
+        if self.discrete_map is not None:  # no state between the samples: the straight line, exact at 0 and Ts
+            line = x + dt / self.map_sample_time * (self.discrete_map(x, u) - x)
+            return ca.Function(f"{self.name}_map_flow", [x, u, dt], [line], ["x", "u", "dt"], ["x_dt"])
         state = _sub_steps(self.dynamics, x, u, dt / int(steps), int(steps), method)[-1]
         return ca.Function(f"{self.name}_{method}_flow", [x, u, dt], [state], ["x", "u", "dt"], ["x_dt"])
+
+    def _check_map(self, sample_time: float, steps: int) -> None:
+        if not math.isclose(sample_time, self.map_sample_time, rel_tol=1e-12):
+            raise ConfigError(f"model {self.name} is a discrete map over {self.map_sample_time} s: sample_time must be "
+                              f"that, got {sample_time}")
+        if steps != 1:
+            raise ConfigError(f"model {self.name} is a discrete map: it has no states between its samples "
+                              f"(integration_steps must be 1, got {steps})")
 
     def symbol_table(self, x: ca.SX | ca.MX, u: ca.SX | ca.MX) -> dict[str, ca.SX | ca.MX]:
         """Names -> symbolic entries of x, u and y = h(x, u), for algebraic region expressions."""

@@ -11,6 +11,8 @@ nmpc_avoid_ros/models/):
     dynamics:                            # continuous time x' = f(x, u), one expression per state
       x1: x2
       x2: damping*(1 - x1**2)*x2 - x1 + u
+    # or, instead of `dynamics`, a discrete map over its own sample time:
+    #   discrete: {x1: x1 + 0.5*x2, x2: ...}   and   sample_time: 0.5
     output: {y: x1}                      # y = h(x, u)
     steady_state:                        # optional closed form g_x(y), g_u(y) over the outputs
       states: {x1: y, x2: 0}
@@ -31,7 +33,6 @@ is built completely or not at all. Steady-state maps are checked to be equilibri
 
 from __future__ import annotations
 
-import keyword
 import math
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -39,19 +40,10 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-import yaml
 
-from ..errors import ConfigError, ExpressionError
-from .expressions import ALLOWED_CONSTANTS, ALLOWED_FUNCTIONS, parse_expression
 from .model import Model, PlanarMap, unicycle_turn_guess
+from .model_yaml import ModelFile, ModelFileError, key_of, read_model_file  # noqa: F401 (ModelFileError: what it raises)
 
-#: a model file larger than this is refused before it is parsed (bytes)
-MAX_FILE_SIZE = 200_000
-#: states, inputs or outputs a model may declare
-MAX_DIMENSION = 100
-KEYS = ("name", "description", "parameters", "states", "inputs", "outputs", "units", "dynamics", "output",
-        "steady_state", "rest", "near_rest", "bounds", "plane", "angle_outputs", "turn_on_spot", "planar")
-REQUIRED = ("name", "states", "inputs", "outputs", "dynamics", "output")
 BOUND_KEYS = ("state_min", "state_max", "input_min", "input_max")
 #: |f(g_x(y), g_u(y))| and |h(g_x(y), g_u(y)) - y| above this (relative to 1 + |y|) is not an equilibrium
 STEADY_TOLERANCE = 1e-8
@@ -59,118 +51,7 @@ STEADY_TOLERANCE = 1e-8
 STEADY_CHECKS = 8
 
 
-class ModelFileError(ConfigError):
-    """A model file that cannot be used: `file:line: what` in one line."""
-
-
-class _Text(str):
-    """A YAML string that remembers its line (1-based)."""
-
-    line: int = 0
-
-
-class _Loader(yaml.SafeLoader):
-    """SafeLoader whose strings (keys and values) carry their line numbers."""
-
-
-def _text(loader: _Loader, node: yaml.ScalarNode) -> _Text:
-    text = _Text(loader.construct_scalar(node))
-    text.line = node.start_mark.line + 1
-    return text
-
-
-_Loader.add_constructor("tag:yaml.org,2002:str", _text)
-
-
-def _line(*items: Any) -> int:
-    """The first known line among items (a _Text, or a mapping/list holding one)."""
-    for item in items:
-        if isinstance(item, _Text):
-            return item.line
-        if isinstance(item, Mapping):
-            found = _line(*item.keys())
-        elif isinstance(item, list):
-            found = _line(*item)
-        else:
-            continue
-        if found:
-            return found
-    return 0
-
-
-class _File:
-    """One model file being read: where errors point."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-
-    def error(self, where: Any, message: str) -> ModelFileError:
-        line = _line(where) if not isinstance(where, int) else where
-        return ModelFileError(f"{self.path}:{line}: {message}" if line else f"{self.path}: {message}")
-
-    def names(self, data: Mapping, key: str) -> tuple[str, ...]:
-        value = data[key]
-        if not isinstance(value, list) or not value or len(value) > MAX_DIMENSION:
-            raise self.error(key_of(data, key), f"{key} must be a list of 1..{MAX_DIMENSION} names, got {value!r}")
-        for name in value:
-            if not (isinstance(name, str) and name.isidentifier() and not keyword.iskeyword(name)) \
-                    or name in ALLOWED_FUNCTIONS or name in ALLOWED_CONSTANTS:
-                raise self.error(name if isinstance(name, _Text) else key_of(data, key),
-                                 f"{key}: {name!r} is not a usable name (an identifier that is not a function "
-                                 f"or constant of the expressions)")
-        return tuple(str(n) for n in value)
-
-    def table(self, data: Mapping, key: str, names: tuple[str, ...], symbols: Mapping[str, Any]) -> list[Any]:
-        """The expressions of `key` (a mapping name -> expression), one per name, in the order of names."""
-        section = data.get(key)
-        if not isinstance(section, Mapping):
-            raise self.error(key_of(data, key), f"{key} must map each of {list(names)} to an expression")
-        missing = [n for n in names if n not in section]
-        extra = [k for k in section if k not in names]
-        if missing or extra:
-            where = extra[0] if extra else key_of(data, key)
-            what = f"missing {missing}" if missing else f"unknown {[str(e) for e in extra]}"
-            raise self.error(where, f"{key}: {what} (declared: {list(names)})")
-        return [self.expression(section[n], symbols, f"{key}.{n}", n) for n in names]
-
-    def expression(self, text: Any, symbols: Mapping[str, Any], what: str, where: Any) -> Any:
-        if isinstance(text, (int, float)) and not isinstance(text, bool):
-            text = repr(float(text))
-        try:
-            return parse_expression(text, symbols)
-        except ExpressionError as exc:
-            raise self.error(text if isinstance(text, _Text) else where, f"{what}: {exc}") from None
-
-
-def key_of(data: Mapping, key: str) -> Any:
-    """The key object itself (a _Text with its line) of `key` in data, else key."""
-    return next((k for k in data if k == key), key)
-
-
-def _read(path: Path) -> tuple[_File, Mapping]:
-    file = _File(path)
-    try:
-        size = path.stat().st_size
-        if size > MAX_FILE_SIZE:
-            raise file.error(0, f"model file is too large ({size} > {MAX_FILE_SIZE} bytes)")
-        data = yaml.load(path.read_text(encoding="utf-8"), Loader=_Loader)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise file.error(0, f"cannot read the model file: {exc}") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        raise file.error(mark.line + 1 if mark else 0, f"not YAML: {getattr(exc, 'problem', exc)}") from None
-    if not isinstance(data, Mapping):
-        raise file.error(0, f"a model file is a mapping of {', '.join(REQUIRED)} (and optional keys)")
-    unknown = [k for k in data if k not in KEYS]
-    if unknown:
-        raise file.error(unknown[0], f"unknown key {str(unknown[0])!r} (known: {', '.join(KEYS)})")
-    missing = [k for k in REQUIRED if k not in data]
-    if missing:
-        raise file.error(0, f"missing key(s): {', '.join(missing)}")
-    return file, data
-
-
-def _parameters(file: _File, data: Mapping, overrides: Mapping[str, float] | None) -> dict[str, float]:
+def _parameters(file: ModelFile, data: Mapping, overrides: Mapping[str, float] | None) -> dict[str, float]:
     section = data.get("parameters") or {}
     if not isinstance(section, Mapping):
         raise file.error(key_of(data, "parameters"), "parameters must map names to numbers")
@@ -189,7 +70,7 @@ def _parameters(file: _File, data: Mapping, overrides: Mapping[str, float] | Non
 def load_model_file(path: str | Path, parameters: Mapping[str, float] | None = None) -> Model:
     """The Model a model file declares (`parameters` override its defaults); ModelFileError naming the file,
     line and cause for anything wrong with it."""
-    file, data = _read(Path(path))
+    file, data = read_model_file(Path(path))
     params = _parameters(file, data, parameters)
     states, inputs, outputs = (file.names(data, k) for k in ("states", "inputs", "outputs"))
     everything = [*params, *states, *inputs, *outputs]
@@ -203,7 +84,18 @@ def load_model_file(path: str | Path, parameters: Mapping[str, float] | None = N
     x, u = ca.SX.sym("x", len(states)), ca.SX.sym("u", len(inputs))
     constants = {k: ca.SX(v) for k, v in params.items()}
     xu = {**constants, **{s: x[i] for i, s in enumerate(states)}, **{s: u[i] for i, s in enumerate(inputs)}}
-    xdot = ca.vertcat(*file.table(data, "dynamics", states, xu))
+    discrete_map, map_sample_time = None, None
+    if "discrete" in data:
+        map_sample_time = data["sample_time"]
+        if isinstance(map_sample_time, bool) or not isinstance(map_sample_time, (int, float)) \
+                or not (math.isfinite(map_sample_time) and map_sample_time > 0):
+            raise file.error(key_of(data, "sample_time"), f"sample_time must be a positive number of seconds, got "
+                                                          f"{map_sample_time!r}")
+        x_next = ca.vertcat(*file.table(data, "discrete", states, xu))
+        discrete_map = ca.Function(f"{name}_map", [x, u], [x_next], ["x", "u"], ["x_next"])
+        xdot = (x_next - x) / float(map_sample_time)  # zero exactly at the map's fixed points
+    else:
+        xdot = ca.vertcat(*file.table(data, "dynamics", states, xu))
     y = ca.vertcat(*file.table(data, "output", outputs, xu))
     dynamics = ca.Function(f"{name}_dynamics", [x, u], [xdot], ["x", "u"], ["xdot"])
     output = ca.Function(f"{name}_output", [x, u], [y], ["x", "u"], ["y"])
@@ -224,10 +116,11 @@ def load_model_file(path: str | Path, parameters: Mapping[str, float] | None = N
         turn_guess=_turn_guess(file, data, planar), rest=rest,
         angle_outputs=_angles(file, data, states, outputs), planar=planar,
         units=_units(file, data, states, outputs), bounds=_bounds(file, data, states, inputs),
-        parameters=params, source=str(path), description=str(data.get("description") or ""))
+        parameters=params, source=str(path), description=str(data.get("description") or ""),
+        discrete_map=discrete_map, map_sample_time=None if map_sample_time is None else float(map_sample_time))
 
 
-def _steady_state(file: _File, data: Mapping, params: Mapping[str, float], states: tuple[str, ...],
+def _steady_state(file: ModelFile, data: Mapping, params: Mapping[str, float], states: tuple[str, ...],
                   inputs: tuple[str, ...], outputs: tuple[str, ...], dynamics: ca.Function,
                   output: ca.Function) -> Callable | None:
     """g_x, g_u as a function of y (SX/MX: the expressions over its entries; numbers: DM); checked to be
@@ -266,7 +159,7 @@ def _steady_state(file: _File, data: Mapping, params: Mapping[str, float], state
     return steady
 
 
-def _near_rest(file: _File, data: Mapping, params: Mapping[str, float], states: tuple[str, ...],
+def _near_rest(file: ModelFile, data: Mapping, params: Mapping[str, float], states: tuple[str, ...],
                inputs: tuple[str, ...], outputs: tuple[str, ...]) -> Callable | None:
     section = data.get("near_rest")
     if section is None:
@@ -287,14 +180,14 @@ def _near_rest(file: _File, data: Mapping, params: Mapping[str, float], states: 
     return near_rest
 
 
-def _indices(file: _File, data: Mapping, key: str, names: tuple[str, ...], count: int) -> tuple[int, ...]:
+def _indices(file: ModelFile, data: Mapping, key: str, names: tuple[str, ...], count: int) -> tuple[int, ...]:
     value = data[key]
     if not isinstance(value, list) or len(value) != count or any(v not in names for v in value):
         raise file.error(key_of(data, key), f"{key} must list {count} of {list(names)}, got {value!r}")
     return tuple(names.index(v) for v in value)
 
 
-def _angles(file: _File, data: Mapping, states: tuple[str, ...],
+def _angles(file: ModelFile, data: Mapping, states: tuple[str, ...],
             outputs: tuple[str, ...]) -> tuple[tuple[int, int], ...]:
     section = data.get("angle_outputs") or {}
     if not isinstance(section, Mapping) or any(k not in outputs or v not in states for k, v in section.items()):
@@ -302,7 +195,7 @@ def _angles(file: _File, data: Mapping, states: tuple[str, ...],
     return tuple((outputs.index(k), states.index(v)) for k, v in section.items())
 
 
-def _units(file: _File, data: Mapping, states: tuple[str, ...], outputs: tuple[str, ...]) -> dict[str, tuple]:
+def _units(file: ModelFile, data: Mapping, states: tuple[str, ...], outputs: tuple[str, ...]) -> dict[str, tuple]:
     section = data.get("units") or {}
     sizes = {"states": len(states), "outputs": len(outputs)}
     if not isinstance(section, Mapping) or any(k not in sizes for k in section):
@@ -315,7 +208,7 @@ def _units(file: _File, data: Mapping, states: tuple[str, ...], outputs: tuple[s
     return units
 
 
-def _bounds(file: _File, data: Mapping, states: tuple[str, ...], inputs: tuple[str, ...]) -> dict[str, tuple]:
+def _bounds(file: ModelFile, data: Mapping, states: tuple[str, ...], inputs: tuple[str, ...]) -> dict[str, tuple]:
     section = data.get("bounds") or {}
     if not isinstance(section, Mapping) or any(k not in BOUND_KEYS for k in section):
         raise file.error(key_of(data, "bounds"), f"bounds may hold {', '.join(BOUND_KEYS)}")
@@ -340,7 +233,7 @@ def _yaml_float(value: Any) -> float:
         return math.nan
 
 
-def _planar(file: _File, data: Mapping, states: tuple[str, ...], inputs: tuple[str, ...], xu: Mapping,
+def _planar(file: ModelFile, data: Mapping, states: tuple[str, ...], inputs: tuple[str, ...], xu: Mapping,
             x: ca.SX, u: ca.SX, constants: Mapping) -> PlanarMap | None:
     section = data.get("planar")
     if section is None:
@@ -374,7 +267,7 @@ def _planar(file: _File, data: Mapping, states: tuple[str, ...], inputs: tuple[s
     return PlanarMap(states.index(section["x"]), states.index(section["y"]), yaw, velocity, command, from_command)
 
 
-def _turn_guess(file: _File, data: Mapping, planar: PlanarMap | None) -> Callable | None:
+def _turn_guess(file: ModelFile, data: Mapping, planar: PlanarMap | None) -> Callable | None:
     if not data.get("turn_on_spot"):
         return None
     if planar is None or (planar.x, planar.y, planar.yaw) != (0, 1, 2) or not _commands_inputs(planar):
