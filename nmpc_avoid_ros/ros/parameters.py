@@ -19,7 +19,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..core.config.schema import Setting
-from ..core.config.settings import NODE_SETTINGS, SETTINGS, ControllerSettings, NodeSettings
+from ..core.config.settings import BOUNDS, NODE_SETTINGS, SETTINGS, ControllerSettings, NodeSettings
 
 #: state, command, diagnostics, prediction, clock: reliable, keep last 100. A reliable writer drops
 #: samples a reader has not acknowledged once its history is full: with 10, a recorder busy for
@@ -77,6 +77,8 @@ def spec_of(setting: Setting) -> ParamSpec:
     if isinstance(default, tuple):
         # an empty list has no ROS type: declare typed and unset
         default = list(default) if default else None
+    if setting.name in BOUNDS:  # unset: Z's box comes from the model file (settings_from_values), as offline
+        default = None
     float_range = int_range = None
     if not setting.is_array and setting.kind in ("float", "int") and (setting.low, setting.high) != (None, None):
         bounds = (-math.inf if setting.low is None else setting.low, math.inf if setting.high is None else setting.high)
@@ -100,8 +102,9 @@ def node_settings_specs() -> list[ParamSpec]:
 
 
 def settings_from_values(values: Mapping[str, Any]) -> ControllerSettings:
-    """Core settings from declared parameter values (unset ones take the default; ConfigError names a bad one)."""
-    return ControllerSettings(**_declared(values, SETTINGS))
+    """Core settings from declared parameter values (unset ones take the default, the bounds of Z the model
+    file's, as ControllerSettings.from_params does; ConfigError names a bad one)."""
+    return ControllerSettings.from_params(_declared(values, SETTINGS))
 
 
 def node_settings_from_values(values: Mapping[str, Any]) -> NodeSettings:
@@ -117,7 +120,9 @@ def markdown_table(specs: Iterable[ParamSpec]) -> str:
     """docs/reference.md's parameter table of one node: parameter, default, change, meaning."""
     rows = ["| parameter | default | change | meaning |", "|---|---|---|---|"]
     for spec in specs:
-        if spec.default is None:
+        if spec.name in BOUNDS and spec.default is None:
+            default = "the model file's `bounds`"
+        elif spec.default is None:
             default = "(unset)"
         elif spec.default == "":
             default = "(empty)"

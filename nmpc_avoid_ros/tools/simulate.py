@@ -97,7 +97,7 @@ def summarize(run: ClosedLoopRun, target: list[float], model: Model) -> dict[str
         "failures": sum(s != StepStatus.OK for s in run.status),
         "nlp_builds": run.info.get("nlp_builds"),
     }
-    if x.shape[1] >= 2:
+    if model.name == "van_der_pol":  # the paper's region |x1 x2| <= 2; meaningless for another model
         summary["max_abs_x1x2"] = max_abs_product(x)
     return summary
 
@@ -112,7 +112,11 @@ def simulate(scenario: Scenario) -> tuple[ClosedLoopRun, dict[str, Any]]:
     scene, ts = scenario.scene, scenario.settings.sample_time
     if scene is None:
         run = run_closed_loop(controller, scenario.x0, scenario.target, scenario.steps, scenario.plant)
-        return run, summarize(run, scenario.target, controller.model)
+        summary = summarize(run, scenario.target, controller.model)
+        # the keep-in expressions (g > 0 outside) over the samples and the motion between them (10 points each)
+        between = clearance_between_samples(controller.settings, controller.model, run.x, run.u, run.regions)
+        summary["max_penetration_keep_in"] = between["max_penetration_keep_in"]
+        return run, summary
     run = run_closed_loop(controller, scenario.x0, lambda k: scene.target_at(k * ts), scenario.steps, scenario.plant,
                           lambda k: scene.regions_at(k * ts))
     summary = summarize(run, list(run.targets[-1]), controller.model)
@@ -185,6 +189,8 @@ def main(argv: list[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out))
     mx = f" max|x1x2|={summary['max_abs_x1x2']:.4f}" if "max_abs_x1x2" in summary and not scenario.scene else ""
+    if scenario.scene is None and scenario.settings.keep_in:
+        mx += f" keep-in penetration {summary['max_penetration_keep_in']:.1e}"
     if scenario.scene is not None:
         clear = ", ".join(f"{k} {'-' if v is None else format(v, '.4f')}" for k, v in summary["min_clearance"].items())
         gap = summary["between_samples"]["min_clearance_obstacles"]
