@@ -173,3 +173,35 @@ def test_bad_robot_messages_are_refused_with_a_reason_and_the_loop_goes_on(ros_g
     last = robot.diags[-1]
     assert last["status"] in ("ok", "truncated", "unconverged") and int(last["rejected_inputs"]) >= 5
     assert ctrl.alive() and ctrl.stop() == 0
+
+
+def test_the_car_like_robot_reaches_a_goal_pose_with_its_turning_radius_through_dds(ros_graph):
+    """config/bicycle.yaml (a model file's `planar` map: cmd_vel is v and the yaw rate v tan(delta) / L, the plant
+    turns it back into the steering angle), lockstep, interpreted FATROP (no compile in a test): the goal pose
+    reached past the two ellipses, every command within the car's turning radius."""
+    _, _, start, probe = ros_graph
+    p = probe()
+    robot = RobotProbe(p)
+    obstacles = regions_to_markers(ELLIPSES)
+    for marker in obstacles.markers:
+        marker.header.frame_id = marker.header.frame_id and "odom"
+    robot.obstacles.publish(obstacles)
+    config = ["--ros-args", "--params-file", str(ROOT / "config" / "bicycle.yaml")]
+    fast = ["-p", "lockstep:=true", "-p", "codegen:=false", "-p", "codegen_background:=false"]
+    ctrl = start("controller", *config, *fast)
+    plant = start("plant", *config, "-p", "lockstep:=true", "-p", "wait_for_subscribers:=2")
+    assert p.spin_until(lambda: len(robot.odom) >= 1 and "2 region(s) stored" in ctrl.output(), 60), \
+        (ctrl.output(), plant.output())
+    robot.send_goal(*GOAL)  # heading 0
+    steps = 100
+    assert p.spin_until(lambda: len(robot.odom) > steps, 240), (ctrl.output()[-3000:], robot.diags[-1:])
+    states = np.array([odom[1:] for odom in robot.odom[: steps + 1]])
+    assert np.hypot(states[-1, 0] - GOAL[0], states[-1, 1] - GOAL[1]) < 0.1 and abs(states[-1, 2]) < 0.1
+    assert max(max(0.0, e.depth(q)) for e in ELLIPSES for q in states[:, :2]) <= 1e-3
+    model = make_model("bicycle")
+    wheelbase, steer_max = model.parameters["wheelbase"], model.bounds["input_max"][1]
+    for command in robot.commands[:steps]:
+        v, omega = command.twist.linear.x, command.twist.angular.z
+        assert abs(omega) <= abs(v) * math.tan(steer_max) / wheelbase + 1e-9
+    assert "Assumption 5" in ctrl.output()  # a car at rest cannot move sideways: the start says so
+    assert plant.stop() == 0 and ctrl.stop() == 0
