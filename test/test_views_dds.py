@@ -18,6 +18,7 @@ from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from nmpc_avoid_ros.core.config.settings import load_params_file
+from nmpc_avoid_ros.core.problem.models import make_model
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.nodes.plant import PLANT_SPECS, tf_message_type
 from nmpc_avoid_ros.ros.markers import regions_to_markers
@@ -27,6 +28,8 @@ pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 #: the robot configs and their views (config/*.rviz, config/*.foxglove.json)
 LAYOUTS = {"unicycle.yaml": ("unicycle.rviz", "unicycle.foxglove.json"),
+           # the robot interface's topics and frames: the unicycle's views fit the car-like robot as they are
+           "bicycle.yaml": ("unicycle.rviz", "unicycle.foxglove.json"),
            "mobile_robot.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json"),
            "mobile_robot_live.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json")}
 RVIZ_TYPES = {"rviz_default_plugins/Odometry": "nav_msgs/msg/Odometry",
@@ -103,7 +106,7 @@ def test_every_robot_config_has_its_views_and_every_view_belongs_to_one():
     claimed = {name for pair in LAYOUTS.values() for name in pair}
     assert shipped == claimed, shipped ^ claimed
     robots = {p.name for p in (ROOT / "config").glob("*.yaml")
-              if load_params_file(p).section("controller").get("model") in ("unicycle", "double_integrator_2d")}
+              if make_model(load_params_file(p).section("controller").get("model", "van_der_pol")).planar is not None}
     assert robots == set(LAYOUTS)
     # the two mobile robot configs share their views: the same model and interface, so the same topics
     mobile = [load_params_file(ROOT / "config" / name).section("controller") for name in LAYOUTS if "mobile" in name]
