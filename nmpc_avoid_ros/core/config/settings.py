@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigError
-from ..problem.models import DISCRETISATIONS, check_model_name, make_model
+from ..problem.models import DISCRETISATIONS, check_model_name, model_bounds
 
 # the params-file readers live in params_file.py; the tools and tests import them from here too
 from .params_file import NAMESPACE_WILDCARDS, ParamsFile, default_config_path, load_params_file, params_file_node  # noqa: F401
@@ -69,14 +69,14 @@ class ControllerSettings:
         1, "sub-steps of the discretisation per sample (h = Ts / steps); the regions are avoided at every "
            "sub-step state, so also between the samples (docs/design.md, 'Between the samples'); 1 as in the paper",
         low=1, high=100)
-    state_min: tuple[float, ...] = setting((-6.0, -2.0), "lower bounds of the state box of Z (n values)",
-                                           high=0.0, finite=False)
-    state_max: tuple[float, ...] = setting((6.0, 2.0), "upper bounds of the state box of Z (n values)",
-                                           low=0.0, finite=False)
-    input_min: tuple[float, ...] = setting((-6.0,), "lower bounds of the input box of Z (m values)",
-                                           high=0.0, finite=False)
-    input_max: tuple[float, ...] = setting((6.0,), "upper bounds of the input box of Z (m values)",
-                                           low=0.0, finite=False)
+    state_min: tuple[float, ...] | None = setting(
+        None, "lower bounds of the state box of Z (n values)", high=0.0, finite=False)
+    state_max: tuple[float, ...] | None = setting(
+        None, "upper bounds of the state box of Z (n values)", low=0.0, finite=False)
+    input_min: tuple[float, ...] | None = setting(
+        None, "lower bounds of the input box of Z (m values)", high=0.0, finite=False)
+    input_max: tuple[float, ...] | None = setting(
+        None, "upper bounds of the input box of Z (m values)", low=0.0, finite=False)
     steady_state_scale: float = setting(0.99, "lambda: the artificial steady state (x_a, u_a) lies in lambda * Z",
                                         low=0.0, low_open=True, high=1.0)
     constraints: tuple[str, ...] = setting((), "hard inequalities of Z over state/input/output names, "
@@ -191,6 +191,13 @@ class ControllerSettings:
 
     def __post_init__(self) -> None:
         normalise(self)
+        unset = [name for name in BOUNDS if getattr(self, name) is None]
+        if unset:  # Z's box from the model file (the paper's |x1| <= 6, |x2| <= 2, |u| <= 6 for van der Pol)
+            declared = model_bounds(self.model)
+            for name in unset:
+                if name not in declared:
+                    raise ConfigError(f"{name} is unset and model {self.model} declares no bounds: set it")
+                object.__setattr__(self, name, SETTINGS[name].coerce(declared[name]))
         self._check_relations()
 
     def validate(self) -> None:
@@ -232,10 +239,7 @@ class ControllerSettings:
         unknown = sorted(map(str, set(params) - set(SETTINGS) - NODE_ONLY_PARAMETERS))
         if unknown:
             raise ConfigError(f"unknown controller parameter(s): {', '.join(unknown)}")
-        values = {k: _yaml_number(SETTINGS[k], v) for k, v in params.items() if k in SETTINGS}
-        if "model" in values and not set(BOUNDS) <= set(values):  # Z's box from the model file where unset
-            values = {**make_model(str(values["model"])).bounds, **values}
-        return cls(**values)
+        return cls(**{k: _yaml_number(SETTINGS[k], v) for k, v in params.items() if k in SETTINGS})
 
     def structure_key(self) -> tuple:
         """The fields that define the NLP and its solver (equal keys -> the same NLP and solver)."""

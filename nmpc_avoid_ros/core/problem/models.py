@@ -12,6 +12,7 @@ Each call builds the model afresh (a few milliseconds): nothing CasADi holds is 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
@@ -21,7 +22,7 @@ from .model import DISCRETISATIONS, Model, PlanarMap, unicycle_turn_guess
 from .model_files import ModelFileError, load_model_file
 
 __all__ = ["DISCRETISATIONS", "MODELS", "ENTRY_POINT_GROUP", "Model", "ModelFileError", "PlanarMap", "check_model_name",
-           "make_model", "model_names", "unicycle_turn_guess"]
+           "make_model", "model_bounds", "model_names", "unicycle_turn_guess"]
 
 #: the shipped model files
 MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
@@ -90,3 +91,16 @@ def make_model(name: str) -> Model:
         raise ConfigError(f"model {name!r} registered by {entry.value!r} returned {type(made).__name__}, "
                           f"not a Model or a model file path")
     return made
+
+
+def model_bounds(name: str) -> dict[str, tuple[float, ...]]:
+    """The bounds of Z a model declares (state_min, state_max, input_min, input_max, as far as it does): a config's
+    defaults. Cached per name (and a file's modification time): settings are built often, a model is parsed once."""
+    resolved = check_model_name(name)
+    stamp = resolved.stat().st_mtime_ns if is_model_file(name) else 0
+    return dict(_bounds(name, stamp))
+
+
+@functools.lru_cache(maxsize=128)
+def _bounds(name: str, _stamp: int) -> tuple[tuple[str, tuple[float, ...]], ...]:
+    return tuple(make_model(name).bounds.items())
