@@ -51,3 +51,4 @@ def test_the_shipped_bicycle_config_drives_to_a_goal_pose_among_four_ellipses_wi
         scaled = (run.x[:, :2] - e.center) / e.semi_axes
         assert np.min(np.sum(scaled**2, axis=1)) > 1.0
     assert np.all(np.abs(run.u[:, 1]) <= 0.5 + 1e-6)  # the steering bound: a turning radius >= 0.92 m
+

@@ -15,12 +15,13 @@ import pytest
 from conftest import PAPER_TARGET, PAPER_X0, solver_calls
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
-from nmpc_avoid_ros.core.config.settings import ControllerSettings
+from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
 from nmpc_avoid_ros.core.nlp.search import Outcome, Start, plan_cost, solve_start
 from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
 from nmpc_avoid_ros.core.sample.candidates import Guess, guess_start
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import StepStatus
 from nmpc_avoid_ros.core.sample.warm_start import initial_guess
 from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings
 
@@ -185,3 +186,20 @@ def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
     assert [t.label for t in tried] == ["rest", "straight", "reference"], tried
     assert all(t.outcome is Outcome.NOT_TRIED for t in tried[1:]), tried
     assert result.solve_time <= controller.sample_budget() + 0.05
+
+
+def test_a_fast_path_cold_start_gets_its_real_time_budget_and_the_reference_its_turn():
+    """Campaign scene bicycle-0024 (the car at rest, no obstacle): FATROP (1.1.8) does not return from its cold starts
+    there; each fast-path cold start is cut at max_solve_time, so the reference still answers the sample (before,
+    the first start took the whole cold budget, sample after sample, and the car never moved)."""
+    params = load_params_file("config/bicycle.yaml").section("controller")
+    settings = ControllerSettings.from_params(params).replace(codegen=False, codegen_background=False)
+    controller = NmpcController(settings)
+    x0 = np.array([-6.355656512209264, 2.870022962987896, 1.9523459771080096])
+    goal = np.array([-1.7294034884835217, 4.221326421816794, -1.3779670930499923])
+    result = controller.step(x0, goal, (), time=0.0)
+    assert result.status == StepStatus.OK
+    fast = [t for t in result.search.tried if t.label != "reference" and t.solver_called]
+    assert all(t.seconds <= settings.max_solve_time + 0.05 for t in fast)
+    kept = [t.label for t in result.search.tried if t.outcome.value == "kept"]
+    assert len(kept) == 1 and (kept[0] != "rest") == (result.search.tried[0].outcome.value != "kept")

@@ -41,7 +41,8 @@ NON_FINITE_GUESS = "non_finite_guess"
 
 @dataclass
 class Start:
-    """One initial guess for one NLP: w0 [n_w] (slacks filled), multipliers, the call's iteration budget."""
+    """One initial guess for one NLP: w0 [n_w] (slacks filled), multipliers, the call's iteration budget and
+    its time limit, s (the call is abandoned then, if the sample's deadline does not come first)."""
 
     label: str
     nlp: NlpBase
@@ -50,6 +51,7 @@ class Start:
     lam_g0: np.ndarray
     budget: int
     cold: bool = False
+    time_limit: float = math.inf
 
 
 @dataclass
@@ -183,7 +185,8 @@ def solve_start(start: Start, par: np.ndarray, feasibility_tolerance: float) -> 
         return Candidate(start.label, nlp, start.w0, start.lam_x0, start.lam_g0, NON_FINITE_GUESS, 0, 0.0,
                          False, False, False, False)
     tier = nlp.capacity if isinstance(nlp, TieredNlp) else None  # where TieredNlp.solve runs it
-    w, lam_x, lam_g, stats, seconds = nlp.solve(start.w0, par, start.lam_x0, start.lam_g0, cold=start.cold)
+    w, lam_x, lam_g, stats, seconds = nlp.solve(start.w0, par, start.lam_x0, start.lam_g0, cold=start.cold,
+                                                time_limit=start.time_limit)
     status = str(stats.get("return_status", "unknown"))
     iterations = int(stats.get("iter_count", -1))
     solved = status in SOLVED

@@ -26,6 +26,7 @@ multipliers).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -91,18 +92,18 @@ class TieredNlp:
             else self._static_slots
         return np.concatenate([par[:self._prefix], slots])
 
-    def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
+    def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False,
+              time_limit: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
         """NlpBase.solve in the regular layout, on the tier where one holds the regions (multipliers zero)."""
         tier, regular = self.tier, self.regular
         if tier is None:
-            return regular.solve(w0, par, lam_x0, lam_g0, cold=cold)
+            return regular.solve(w0, par, lam_x0, lam_g0, cold=cold, time_limit=time_limit)
         tier_par = self.tier_parameters(par)
         U, X, y_a, rest = regular.layout.split_w(w0)
         x0 = par[:regular.layout.n]
         guess = tier.fill_slacks(tier.layout.join_w(U, X, y_a, rest, x0=x0), tier_par)
         w, _, _, stats, seconds = tier.solve(guess, tier_par, np.zeros(tier.layout.n_w), np.zeros(tier.lbg.size),
-                                             cold=cold)
+                                             cold=cold, time_limit=time_limit)
         if np.all(np.isfinite(w)):
             U, X, y_a, rest = tier.layout.split_w(w)
             w = regular.fill_slacks(regular.layout.join_w(U, X, y_a, rest, x0=x0), par)

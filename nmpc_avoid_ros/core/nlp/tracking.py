@@ -23,6 +23,8 @@ but a twice-differentiable NLP (measured: far fewer IPOPT iterations near region
 from __future__ import annotations
 
 import functools
+import math
+import time
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -97,9 +99,11 @@ class NlpBase:
     #: where `solve` runs: None here, else a SolveWorker's child that can be abandoned (core/nlp/worker.py)
     worker: SolveWorker | None = None
 
-    def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
-        """One solver call from the guess (`cold`: with `cold_solver` where there is one).
+    def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False,
+              time_limit: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
+        """One solver call from the guess (`cold`: with `cold_solver` where there is one), abandoned after
+        `time_limit` s if the sample's deadline does not come first (with a worker; in this process a call
+        ends by its solver's own limits).
 
         Returns copies of w [n_w], lam_x [n_w], lam_g [n_g], the solver's stats and the wall time
         of the solver call alone, s (reading the stats costs ~0.07 ms more and is not included).
@@ -111,7 +115,8 @@ class NlpBase:
         does so when a sample begins; core/nlp/background.py).
         """
         if self.worker is not None:
-            return self.worker.solve(self, w0, par, lam_x0, lam_g0, cold, self.worker.deadline)
+            return self.worker.solve(self, w0, par, lam_x0, lam_g0, cold, self.worker.deadline,
+                                     time.perf_counter() + time_limit)
         background.load_ready()
         return self.solve_here(w0, par, lam_x0, lam_g0, cold)
 

@@ -143,9 +143,11 @@ class SolveWorker:
 
     # -- the parent's side -----------------------------------------------------------------
     def solve(self, nlp: Solvable, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray,
-              cold: bool, deadline: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
-        """`nlp.solve_here` in the child, answered by `deadline` (time.perf_counter seconds) or
-        abandoned: then w, lam_x, lam_g are NaN and the stats say ABANDONED."""
+              cold: bool, deadline: float, call_deadline: float = math.inf
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
+        """`nlp.solve_here` in the child, answered by `deadline` (time.perf_counter seconds: the sample's) or the
+        call's own earlier `call_deadline`, or abandoned: then w, lam_x, lam_g are NaN and the stats say
+        ABANDONED."""
         n_w, n_g = nlp.layout.n_w, nlp.lbg.size
         with self._lock:
             begin = time.perf_counter()
@@ -160,7 +162,7 @@ class SolveWorker:
                 np.copyto(self._inputs[n_w + n_p:2 * n_w + n_p], lam_x0)
                 np.copyto(self._inputs[2 * n_w + n_p:2 * n_w + n_p + n_g], lam_g0)
                 os.write(self._child.request, REQUEST.pack(self._index[id(nlp)], int(cold)))
-                if self._wait(deadline):
+                if self._wait(min(deadline, call_deadline)):
                     iterations, seconds, length, raw = _HEADER.unpack_from(self._memory, 0)
                     out = self._outputs
                     stats = {"return_status": raw[:length].decode(), "iter_count": int(iterations)}
