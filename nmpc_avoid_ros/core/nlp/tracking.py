@@ -101,18 +101,13 @@ class NlpBase:
 
     def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False,
               time_limit: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
-        """One solver call from the guess (`cold`: with `cold_solver` where there is one), abandoned after
-        `time_limit` s if the sample's deadline does not come first (with a worker; in this process a call
-        ends by its solver's own limits).
+        """One solver call from the guess (`cold`: with `cold_solver` where there is one). Returns copies of w [n_w],
+        lam_x [n_w], lam_g [n_g], the solver's stats and the wall time of the solver call alone, s.
 
-        Returns copies of w [n_w], lam_x [n_w], lam_g [n_g], the solver's stats and the wall time
-        of the solver call alone, s (reading the stats costs ~0.07 ms more and is not included).
-
-        The call goes through `Function.buffer()` with arrays bound once, so no argument is
-        converted or allocated per call (a dict call costs ~0.15 ms more, measured). With a `worker`
-        (core/nlp/worker.py) it runs in the worker's child and is abandoned at the worker's deadline.
-        Compiled solvers whose libraries landed since the last call are swapped in before it (the worker
-        does so when a sample begins; core/nlp/background.py).
+        Through `Function.buffer()` with arrays bound once (a dict call costs ~0.15 ms more, measured). With a
+        `worker` (core/nlp/worker.py) it runs in the worker's child, abandoned at the sample's deadline or after
+        `time_limit` s, whichever comes first (in this process a call ends by its solver's own limits); compiled
+        solvers that landed are swapped in before it (core/nlp/background.py).
         """
         if self.worker is not None:
             return self.worker.solve(self, w0, par, lam_x0, lam_g0, cold, self.worker.deadline,
