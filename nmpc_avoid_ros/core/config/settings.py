@@ -34,6 +34,8 @@ SOLVER_PATHS: dict[str, str] = {
     "sqp_hpipm": "stage-wise formulation, SQP with a Gauss-Newton Hessian and the HPIPM QP solver",
 }
 SOLVERS = tuple(SOLVER_PATHS)
+#: the terminal conditions of the plan (core/nlp/terminal.py)
+TERMINALS = ("equality", "set")
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,11 @@ class ControllerSettings:
         0, "local-minimum escape and passage-mode guesses solved per sample (core/sample/candidates.py); the rest "
            "follow on the next samples while y_a stays stalled, so one sample's work stays bounded (a real-time "
            "path's worst sample); 0: all in one sample", runtime=True, low=0, high=1000)
+    terminal: str = setting(
+        "equality", "terminal condition of the plan: equality (x(N) = x_a, the paper's simplified scheme eq. 19-20) "
+                    "or set (the general scheme eq. 7-8: terminal cost V_f and a certified terminal set, computed "
+                    "offline and cached; models with a closed-form steady state and one output; solver ipopt; "
+                    "docs/terminal_set.md)", choices=TERMINALS)
     discretization: str = setting("euler", "prediction model discretisation: euler (as in the paper) or rk4",
                                   choices=DISCRETISATIONS)
     integration_steps: int = setting(

@@ -93,6 +93,9 @@ class StagewiseNlp(NlpBase):
         if settings.input_rate_max:
             raise ConfigError(f"input_rate_max couples the stages' inputs, which solver {settings.solver!r} does not "
                               "take: use solver ipopt")
+        if settings.terminal != "equality":
+            raise ConfigError(f"terminal: set is built for solver ipopt (multiple shooting) only; solver "
+                              f"{settings.solver!r} has the terminal equality: use terminal: equality or solver ipopt")
         if not (settings.use_closed_form_steady_state and self.model.steady_state is not None):
             raise ConfigError(f"solver {settings.solver!r} needs the closed-form steady state of the model "
                               "(use_closed_form_steady_state: true); use solver ipopt otherwise")

@@ -12,10 +12,10 @@ Cost:
     (with integration_steps M > 1, F(x(j)) for j < N takes each region's worst g over x(j) and the
     M - 1 sub-step states on the way to x(j+1): avoidance between the samples; M = 1 is the paper's)
 Constraints:
-    x(j+1) = f(x(j), u(j)); x(N) = x_a; (x(j), u(j)) in Z for j = 1..N-1 (x(0) is measured, not
-    decided: only u(0) is bounded at j = 0); (x_a, u_a) in lambda Z; without closed form the
-    equilibrium f_c(x_a, u_a) = 0 and y_a = h(x_a, u_a) (eq. 8e-8f, with the continuous
-    right-hand side, which has the same equilibria as the Euler map and is better scaled).
+    x(j+1) = f(x(j), u(j)); x(N) = x_a (terminal: set: V_f <= alpha, cost + V_f, core/nlp/terminal.py);
+    (x(j), u(j)) in Z for j = 1..N-1 (x(0) is measured, not decided: only u(0) is bounded at j = 0); (x_a, u_a)
+    in lambda Z; without closed form the equilibrium f_c(x_a, u_a) = 0 and y_a = h(x_a, u_a) (eq. 8e-8f, with
+    the continuous right-hand side, which has the same equilibria as the Euler map and is better scaled).
 The penalty max(0, g)^2 is written with slacks s >= max(0, g) and cost mu s^2: the same optimum,
 but a twice-differentiable NLP (measured: far fewer IPOPT iterations near region boundaries).
 """
@@ -37,6 +37,7 @@ from . import background
 from .between import between_samples, worst_of
 from .buffered import Buffered
 from .parts import NlpLayout, check_sizes, depth_function, problem_parts
+from .terminal import terminal_constraint
 from .worker import ABANDONED
 
 if TYPE_CHECKING:
@@ -262,10 +263,9 @@ class TrackingNlp(NlpBase):
                 lbg += [0.0] * nd
                 ubg += [np.inf] * nd
         depth = ca.vertcat(*[worst_of(d, e) for d, e in zip(depth, between)])
-        # terminal equality x(N) = x_a (eq. 20h)
-        g.append(states[N] - x_a)
-        lbg += [0.0] * n
-        ubg += [0.0] * n
+        terminal_cost, rows, lo, hi = terminal_constraint(s, mdl, states[N], x_a, y_a)  # eq. 20h, or 8g with V_f
+        g.append(rows)
+        lbg, ubg = lbg + lo, ubg + hi
         lam = s.steady_state_scale
         # (x_a, u_a) in lambda Z: boxes scaled by lambda, inequalities evaluated at z / lambda
         g.append(ca.vertcat(x_a, u_a))
@@ -285,6 +285,7 @@ class TrackingNlp(NlpBase):
             ubg += [0.0] * (rest.numel() + p)
 
         v_offset = parts.offset_cost(y_a)
+        tracking = tracking if terminal_cost is None else tracking + terminal_cost  # V_N = V_o + V_a + tracking
         cost = v_offset + mu * ca.dot(slack, slack) + tracking
         v_avoid = mu * ca.sumsqr(ca.fmax(0, depth))
 

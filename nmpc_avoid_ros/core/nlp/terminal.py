@@ -1,0 +1,109 @@
+"""The terminal part of the tracking NLP: the equality x(N) = x_a (eq. 20h) or the general scheme's terminal
+cost and set (eq. 7-8g), per the setting `terminal`.
+
+With `terminal: set` the ingredients (core/problem/terminal.py) are computed once per model, Z, lambda, Ts,
+discretisation and stage weights, and cached on disk beside the compiled solvers (core/nlp/codegen.py
+`cache_dir`, sub-folder `terminal/`, one JSON file per key) and in this process. P(y_a) and alpha(y_a) enter
+the NLP as CasADi expressions of the decision variable y_a, so a new target or new regions change nothing.
+
+The terminal cost is computed for the settings' state_weights and input_weights: changing those at run time
+keeps the same V_f and alpha, which are then no longer certified for the new stage cost (the stability
+certificate would show it); a new controller recomputes them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from ..config.settings import ControllerSettings
+from ..errors import ConfigError
+from ..problem.model import Model
+from ..problem.terminal import FIT_DEGREE, MARGIN, TerminalIngredients, TerminalProblem, compute_terminal_ingredients
+from .codegen import cache_dir
+
+#: bump when the computation changes: old cache files are then not read
+CACHE_VERSION = "terminal-1"
+#: the solver paths that carry `terminal: set`
+TERMINAL_SET_SOLVERS = ("ipopt",)
+
+log = logging.getLogger(__name__)
+
+
+def terminal_problem(settings: ControllerSettings, model: Model) -> TerminalProblem:
+    """The computation's inputs for these settings (the prediction map the NLP uses)."""
+    step = model.discrete(settings.sample_time, settings.discretization, settings.integration_steps)
+    return TerminalProblem(model, step, settings.state_weights, settings.input_weights, settings.state_min,
+                           settings.state_max, settings.input_min, settings.input_max, settings.steady_state_scale)
+
+
+def cache_key(settings: ControllerSettings, model: Model) -> str:
+    """SHA-256 (16 hex) of what the ingredients depend on: the prediction map, Z, lambda, Q, R and the method."""
+    step = model.discrete(settings.sample_time, settings.discretization, settings.integration_steps)
+    x_s = ca.SX.sym("y", model.p)
+    steady = ca.Function("g", [x_s], list(model.steady_state(x_s))) if model.steady_state else None
+    digest = hashlib.sha256()
+    parts = (CACHE_VERSION, ca.__version__, step.serialize(), steady.serialize() if steady else "",
+             repr([settings.state_min, settings.state_max, settings.input_min, settings.input_max,
+                   settings.steady_state_scale, settings.state_weights, settings.input_weights, MARGIN, FIT_DEGREE]))
+    for part in parts:
+        digest.update(part.encode())
+    return digest.hexdigest()[:16]
+
+
+def terminal_ingredients(settings: ControllerSettings, model: Model) -> TerminalIngredients:
+    """The cached ingredients for these settings: this process's copy, else the disk cache's, else computed
+    (and written there). ConfigError where they cannot be computed (core/problem/terminal.py says why)."""
+    key = cache_key(settings, model)
+    path = cache_dir(settings.cache_dir) / "terminal" / f"{key}.json"
+    if path in _IN_PROCESS:
+        return _IN_PROCESS[path]
+    try:
+        ingredients = TerminalIngredients.from_dict(json.loads(path.read_text()))
+        ingredients.cache = "hit"
+    except (OSError, ValueError, TypeError):
+        ingredients = _compute_and_store(settings, model, path)
+    _IN_PROCESS[path] = ingredients
+    return ingredients
+
+
+#: cache file -> ingredients read or computed in this process
+_IN_PROCESS: dict[Path, TerminalIngredients] = {}
+
+
+def _compute_and_store(settings: ControllerSettings, model: Model, path: Path) -> TerminalIngredients:
+    ingredients = compute_terminal_ingredients(terminal_problem(settings, model))
+    log.info("terminal set of %s computed in %.1f s, cached in %s", model.name, ingredients.seconds, path)
+    try:  # written whole or not at all: a concurrent reader never sees half a file
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, delete=False, suffix=".tmp") as tmp:
+            json.dump(ingredients.to_dict(), tmp)
+        os.replace(tmp.name, path)
+    except OSError as exc:  # a read-only cache costs the recomputation next time, nothing else
+        log.warning("terminal set not cached (%s)", exc)
+    return ingredients
+
+
+def terminal_constraint(settings: ControllerSettings, model: Model, x_n: ca.SX, x_a: ca.SX, y_a: ca.SX
+                        ) -> tuple[ca.SX | None, ca.SX, list[float], list[float]]:
+    """(terminal cost or None, rows g, lbg, ubg) of the terminal condition on x(N) [n] given x_a [n], y_a [p].
+
+    equality: x(N) - x_a = 0 (no cost). set: V_f = e' P(y_a) e with e = x(N) - x_a, and the row
+    V_f / alpha(y_a) - 1 <= 0 (scaled by alpha: alpha spans orders of magnitude over y_a)."""
+    if settings.terminal == "equality":
+        n = model.n
+        return None, x_n - x_a, [0.0] * n, [0.0] * n
+    if settings.solver not in TERMINAL_SET_SOLVERS:
+        raise ConfigError(f"terminal: set is built for solver {', '.join(TERMINAL_SET_SOLVERS)}; solver "
+                          f"{settings.solver!r} has the terminal equality only: use terminal: equality")
+    p_matrix, alpha = terminal_ingredients(settings, model).symbolic(y_a)
+    e = x_n - x_a
+    v_f = ca.dot(e, ca.mtimes(p_matrix, e))
+    return v_f, v_f / alpha - 1, [-np.inf], [0.0]
