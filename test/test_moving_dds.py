@@ -28,6 +28,7 @@ from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.ros.conversions import seconds_to_time
 from nmpc_avoid_ros.ros.markers import region_marker
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
+from nmpc_avoid_ros.tools.demo import scene_summary
 from nmpc_avoid_ros.tools.scene_demo import run_scene_demo
 
 pytestmark = pytest.mark.dds
@@ -46,6 +47,7 @@ def _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep: bool, **overrides: 
     report = run_scene_demo(scene, tmp_path / "out", predict=True, timeout=240.0, lockstep=lockstep,
                             overrides=overrides)
     (metrics,) = report["bags"]
+    assert scene_summary(report).startswith("obstacle clearance ")  # the line `demo --scene` prints
     settings = ControllerSettings.from_params(load_params_file(tmp_path / "out" / "params.yaml").section("controller"))
     run = load_run(tmp_path / "out" / "scene.mcap", settings=settings)
     # the controller saw the walker moving (explicit velocity)

@@ -412,6 +412,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         # command in force until then (one sent at once, then a searched one held: |x2| 2.12 through DDS)
         hold = self.timing.hold_after_tick(self.cover_hold, since_tick)
         ahead = self.timing.predicted(self.state_age, hold) + self.options.transport_delay if compensate else 0.0
+        self.cover_due = now + (hold or self.timing.expected())  # the plan assumes the last command until then
         quick = self.timing.predicted(self.state_age, 0.0, True) + self.options.transport_delay \
             if compensate and not self.cover_hold else ahead
         result = self.controller.step(self.state, self.target, time=self.state_time, latency=quick,

@@ -16,14 +16,17 @@ The node spins on three threads (runner.PoolExecutor), one per callback group, a
 - the late cover (timer mode; a thread of its own, not an executor's timer, which waited for the
   busy executor under a 200 Hz flood): a command every sample even when the sample is late (a
   step may take 10x max_solve_time on a cold start, core/sample/controller.py; a flood of 1000-marker
-  arrays competes for the interpreter). Every sample_time / LATE_CHECKS it looks whether the
-  sample timer's last tick is still unanswered LATE_ALLOWANCE sample periods after it while a plan
-  is in force; then it publishes the plan's next input (the shifted plan, as `coast` would; then
-  its u_a), counted in `late_samples`. Every command of a sample re-arms it with the rest of its
-  plan; a safe-behaviour command (stale state, deactivate) disarms it. So once a plan exists no gap
-  between two commands exceeds (1 + LATE_ALLOWANCE + 1/LATE_CHECKS) = 1.26 sample periods plus the
-  interpreter's latency; a sample answered within 0.2 sample periods (the usual few ms) never
-  meets it.
+  arrays competes for the interpreter). Each plan's inputs act one sample_time each from when its
+  command left: when the command in force has acted its sample_time (COVER_SLACK past it) and the
+  running sample's command is not out by the instant that sample's plan predicted for it (`cover_due`:
+  the plan assumes the command in force until then), the cover publishes the plan's next input (the
+  shifted plan, as `coast` would; then its u_a), counted in `late_samples`, and so on every sample_time.
+  So the plant never runs a plan's input longer than planned beyond what the running plan predicts:
+  extending it to the next tick's sample plus a late-cover allowance let the mobile robot reach 1.224
+  m/s against its 1.2 m/s limit after a target reversal (one real-time DDS run). Every command of a
+  sample re-arms it with the rest of its plan; a safe-behaviour command (stale state, deactivate)
+  disarms it. Gaps between two commands stay below one sample period plus the predicted departure and
+  the interpreter's latency.
 
 `lock` (reentrant: on_state runs on_sample) keeps the node's state to one callback at a time, as
 the single-threaded executor did. SIGINT/SIGTERM interrupt the worker from the signal handler
@@ -51,10 +54,12 @@ from rclpy.duration import Duration
 from ..core.errors import RegionError
 from .controller_inputs import ObstacleIssue, ObstacleKind
 
-#: the late cover (see the module docstring): checks per sample period, and how late (sample periods
-#: after its tick) a sample's command may be before the cover publishes
+#: the late cover (see the module docstring): its longest sleep, sample periods / LATE_CHECKS, and how late (s)
+#: past its due instant it publishes (the running sample's command leaving within it wins)
 LATE_CHECKS = 16
-LATE_ALLOWANCE = 0.2
+COVER_SLACK = 3e-3
+#: s, the cover's shortest sleep (it wakes at the due instant, not in a busy loop)
+COVER_MIN_SLEEP = 5e-4
 #: s, the interpreter's thread switch interval while the late cover runs (Python's
 #: default 0.005; the flood test measured its longest wake-up delay 180 ms at 0.005, 58 ms at 0.001)
 COVER_SWITCH_INTERVAL = 0.001
@@ -131,8 +136,10 @@ class AlwaysAnswers:
         self._command_lock = threading.Lock()
         self._cover_inputs = None  # the rest of the plan in force (inputs [m]), None: no cover
         self._last_command_at = -math.inf  # node-clock s of the last command published
-        #: s a sample holds its command back on purpose (command_latency): the cover waits that much longer
+        #: s a sample holds its command back on purpose (command_latency)
         self.cover_hold = 0.0
+        #: node-clock s at which the running sample's plan assumed its command leaves (the cover waits for it)
+        self.cover_due = -math.inf
         #: longest delay, s, of the late cover's wake-ups beyond its period (what it could not control)
         self.cover_wake_delay = 0.0
 
@@ -148,10 +155,11 @@ class AlwaysAnswers:
         def watch() -> None:
             while True:
                 begin = time.monotonic()
-                if stop.wait(period):
+                sleep = min(max(self.cover_wait(), COVER_MIN_SLEEP), period)
+                if stop.wait(sleep):
                     return
                 # how late this thread woke (the interpreter lock or the CPU were elsewhere): diagnostics
-                self.cover_wake_delay = max(self.cover_wake_delay, time.monotonic() - begin - period)
+                self.cover_wake_delay = max(self.cover_wake_delay, time.monotonic() - begin - sleep)
                 try:
                     self.on_late_check()
                 except Exception as exc:  # noqa: BLE001 - a node being torn down; the cover must not die silently
@@ -222,26 +230,29 @@ class AlwaysAnswers:
         period = self.controller.settings.sample_time
         return min(max(period - until_next * 1e-9, 0.0), period)
 
+    def cover_due_at(self) -> float:
+        """Node-clock s at which the late cover publishes the plan's next input unless a command leaves first:
+        the command in force has acted its sample_time and the running sample's predicted departure has passed,
+        plus COVER_SLACK."""
+        return max(self._last_command_at + self.controller.settings.sample_time, self.cover_due) + COVER_SLACK
+
+    def cover_wait(self) -> float:
+        """s until the cover may have to publish (inf without a plan in force)."""
+        if self._cover_inputs is None:
+            return math.inf
+        return self.cover_due_at() - self.now()
+
     def on_late_check(self) -> None:
-        """The late cover's check: a plan in force and the sample timer's last tick unanswered for
-        LATE_ALLOWANCE sample periods: the plan's next input now. Takes only the command lock."""
+        """The late cover's check: a plan in force whose current input has acted its sample_time, and the running
+        sample's command not out by its predicted departure: the plan's next input now. Takes only the command
+        lock."""
         with self._command_lock:
             inputs = self._cover_inputs
-            if inputs is None or self.stopping or not self.active:
-                return
-            now, period = self.now(), self.controller.settings.sample_time
-            until_next = self.timer.time_until_next_call()
-            if until_next is None:  # the timer is cancelled
-                return
-            # the timer's next call is its first unserved tick while a sample runs over: the ticks go on
-            # every period from there (so a sample 4 s long is covered every period, not once)
-            next_tick = now + until_next * 1e-9
-            last_tick = next_tick - period if next_tick > now else next_tick + (now - next_tick) // period * period
-            if self._last_command_at >= last_tick or now - last_tick < LATE_ALLOWANCE * period + self.cover_hold:
+            if inputs is None or self.stopping or not self.active or self.now() < self.cover_due_at():
                 return
             u = inputs.pop(0) if len(inputs) > 1 else inputs[0]  # the plan's inputs, then its last (u_a)
             self.io.publish_command(u)
-            self._last_command_at = now
+            self._last_command_at = self.now()
             self.last_command = np.asarray(u, float)
             self.counts["late_samples"] += 1
         self.log_throttled("late", "warning", "a sample is late: applying the next input of the last plan")
