@@ -47,8 +47,9 @@ def paper_run(horizon: int, terminal: str, mu: float) -> dict:
 class Feasibility:
     """P_N without regions, solved with chosen parameters from a resting guess."""
 
-    def __init__(self, horizon: int, terminal: str) -> None:
-        self.nlp = TrackingNlp(ControllerSettings(horizon=horizon, terminal=terminal, keep_in=(), max_iterations=500))
+    def __init__(self, horizon: int, terminal: str, base: ControllerSettings | None = None) -> None:
+        base = base or ControllerSettings()
+        self.nlp = TrackingNlp(base.replace(horizon=horizon, terminal=terminal, keep_in=(), max_iterations=500))
         self.n_slots = self.nlp.slot_layout.size
 
     def solve(self, x0: np.ndarray, y_t: float, kappa: float, weight: float) -> tuple[bool, np.ndarray]:
