@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..nlp.terminal import ShiftedTail
 from ..problem.regions import Region
 from ..sample.controller import NmpcController
 from ..sample.status import StepStatus
@@ -174,6 +175,8 @@ class StabilityCertificate:
         self.violations = 0
         self.consecutive = 0
         self._previous: _Previous | None = None
+        #: the candidate's last input and state: u_a, x_a (equality) or kappa(x(N)), f(x(N), kappa) (terminal set)
+        self.tail = ShiftedTail(controller.settings, controller.model)
 
     def reset(self) -> None:
         """Forget the previous sample (the next one is not checked)."""
@@ -217,13 +220,14 @@ class StabilityCertificate:
             # the decrease holds under unchanged parameters only: the check restarts from here
             return self._unchecked(value, source, f"parameters changed ({', '.join(changed)}): check restarted",
                                    mismatch, changed)
-        # the previous plan shifted (u(1..N-1), u_a; x(2..N), x_a), started at its own x(1) (the
-        # nominal successor) and costed with this sample's parameters (moving regions at this
-        # sample's stage times)
+        # the previous plan shifted (u(1..N-1), u_a; x(2..N), x_a; with the terminal set kappa(x(N)) and
+        # f(x(N), kappa) in place of u_a, x_a), started at its own x(1) (the nominal successor) and costed
+        # with this sample's parameters (moving regions at this sample's stage times)
         candidate_par = par.copy()
         candidate_par[:n] = plan.states[1]
-        candidate = self.plan_cost(np.vstack([plan.states[1:], plan.x_a[None, :]]),
-                                   np.vstack([plan.inputs[1:], plan.u_a[None, :]]), plan.y_a, plan.x_a, plan.u_a,
+        last_u, last_x = self.tail(plan.states[-1], plan.y_a, plan.x_a, plan.u_a)
+        candidate = self.plan_cost(np.vstack([plan.states[1:], last_x[None, :]]),
+                                   np.vstack([plan.inputs[1:], last_u[None, :]]), plan.y_a, plan.x_a, plan.u_a,
                                    candidate_par)
         bound = candidate - previous.value
         if not math.isfinite(value) or not math.isfinite(bound):

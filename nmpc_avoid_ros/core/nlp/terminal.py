@@ -26,7 +26,14 @@ import numpy as np
 from ..config.settings import ControllerSettings
 from ..errors import ConfigError
 from ..problem.model import Model
-from ..problem.terminal import FIT_DEGREE, MARGIN, TerminalIngredients, TerminalProblem, compute_terminal_ingredients
+from ..problem.terminal import (
+    FIT_DEGREE,
+    MARGIN,
+    TerminalIngredients,
+    TerminalProblem,
+    compute_terminal_ingredients,
+    local_controller,
+)
 from .codegen import cache_dir
 
 #: bump when the computation changes: old cache files are then not read
@@ -107,3 +114,23 @@ def terminal_constraint(settings: ControllerSettings, model: Model, x_n: ca.SX, 
     e = x_n - x_a
     v_f = ca.dot(e, ca.mtimes(p_matrix, e))
     return v_f, v_f / alpha - 1, [-np.inf], [0.0]
+
+
+class ShiftedTail:
+    """The last input and state of the shifted candidate (the paper's Lemma 1; core/loop/certificate.py): with the
+    equality (u_a, x_a); with the terminal set the local controller's u = kappa(x(N), y_a) and f(x(N), u)."""
+
+    def __init__(self, settings: ControllerSettings, model: Model) -> None:
+        self.with_set = settings.terminal == "set"
+        if self.with_set:
+            self.problem = terminal_problem(settings, model)
+            self.ingredients = terminal_ingredients(settings, model)
+            self.step = model.discrete(settings.sample_time, settings.discretization, settings.integration_steps)
+
+    def __call__(self, x_n: np.ndarray, y_a: np.ndarray, x_a: np.ndarray, u_a: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """(u [m], x [n]) that extend a plan ending in x(N) [n] with steady state (y_a [p], x_a [n], u_a [m])."""
+        if not self.with_set:
+            return np.asarray(u_a, float), np.asarray(x_a, float)
+        u = local_controller(self.problem, self.ingredients, x_n, float(np.ravel(y_a)[0]))
+        return u, np.asarray(self.step(x_n, u), float).ravel()
