@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, default_config_path, load_params_file
+from nmpc_avoid_ros.core.nlp.search import depth_allowance
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 
@@ -53,6 +54,22 @@ def test_a_plan_over_the_speed_limit_is_still_replaced(robot):
     assert robot.fallback.predict(x, holding, par)[1] == pytest.approx(1.2005**2 - 1.44 + 1e-3, abs=1e-9)
     choice = robot.fallback.check_plan(x, par, holding)
     assert choice is not None and choice.kind in ("safe", "recovery") and not choice.unavoidable, choice
+
+
+@pytest.mark.parametrize("speed", [1.1962, 1.1994])
+def test_a_state_in_the_margins_band_is_planned_from_without_the_escape_search(robot, speed):
+    """Every plan from a state inside the band shares x(0)'s depth in its first slack: judged by the absolute
+    depth it "penetrated", and the search tried every escape guess (0.13-0.21 s a sample at the live robot's
+    speed limit, a fallback where the budget ran out). The search judges depth beyond x(0)'s own
+    (`depth_allowance`): the regular plan is kept, clear."""
+    x, _ = cruise(robot, speed)
+    band = speed**2 - 1.44 + robot.settings.keep_in_margin
+    result = robot.step(x, np.array([-8.0, -6.0]))
+    assert result.status == "ok", result.search
+    assert not any(line.phase == "escape" for line in result.search.tried), result.search
+    kept = next(line for line in result.search.tried if line.outcome == "kept")
+    assert kept.depth == pytest.approx(band, abs=1e-5)  # x(0)'s own depth, and no deeper
+    assert depth_allowance(band) == pytest.approx(band + 1e-3) and depth_allowance(5e-4) == 1e-3
 
 
 def test_an_obstacle_ahead_is_judged_with_its_margins_as_before(robot):

@@ -74,10 +74,12 @@ class Candidate:
     cost: float = math.nan
     depth: float = math.nan
     tier: int | None = None
+    #: the depth a plan from its sample's x(0) cannot avoid, plus the tolerance (`depth_allowance`)
+    allowance: float = VIOLATION_TOLERANCE
 
     @property
     def clear(self) -> bool:
-        return self.depth <= VIOLATION_TOLERANCE
+        return self.depth <= self.allowance
 
     def rank(self) -> tuple[bool, float]:
         """The one ranking: clear before penetrating, then the lower cost."""
@@ -201,6 +203,15 @@ def solve_start(start: Start, par: np.ndarray, feasibility_tolerance: float) -> 
     return candidate
 
 
+def depth_allowance(initial_depth: float) -> float:
+    """The depth [g] a plan may predict and count as clear, given the depth of the region rows at its x(0)
+    (measured, not decided): VIOLATION_TOLERANCE, or that depth plus it where x(0) is already deeper than the
+    tolerance (a state inside a margin's band: every plan's first slack holds x(0)'s rows, so judged by the
+    absolute depth every plan from there "penetrates", and the search went on to the escape guesses: the live
+    mobile robot's searches at its speed limit took 0.13-0.21 s instead of ~15 ms)."""
+    return VIOLATION_TOLERANCE + (initial_depth if initial_depth > VIOLATION_TOLERANCE else 0.0)
+
+
 def plan_cost(nlp: NlpBase, w: np.ndarray, par: np.ndarray) -> float:
     """V_o + V_a + tracking of the plan w (the paper's cost, with the penalty's max(0, g)^2)."""
     return float(sum(float(term[0]) for term in nlp.terms(w, par)))
@@ -208,10 +219,11 @@ def plan_cost(nlp: NlpBase, w: np.ndarray, par: np.ndarray) -> float:
 
 def search(starts: Iterable[Start], par: np.ndarray, time_left: float, report: SearchReport, phase: str,
            feasibility_tolerance: float, base: Candidate | None = None,
-           admit: Callable[[Candidate], str] | None = None, stop_at_clear: bool = False
-           ) -> tuple[Candidate | None, Candidate | None, float]:
+           admit: Callable[[Candidate], str] | None = None, stop_at_clear: bool = False,
+           allowance: float = VIOLATION_TOLERANCE) -> tuple[Candidate | None, Candidate | None, float]:
     """Solve the starts in order within `time_left` s; the best admitted usable candidate by `Candidate.rank`
-    (`base`, an earlier phase's plan, competes and is kept on a tie).
+    (`base`, an earlier phase's plan, competes and is kept on a tie); a candidate is clear within `allowance`
+    (`depth_allowance` of the sample's x(0)).
 
     Returns (best or None, the last candidate solved (the caller's fallback reads a budget-cut iterate
     from it), seconds spent). Each start appends a Tried line to `report` under `phase`.
@@ -224,6 +236,7 @@ def search(starts: Iterable[Start], par: np.ndarray, time_left: float, report: S
             report.tried.append(Tried(start.label, phase, outcome=Outcome.NOT_TRIED))
             continue
         candidate = last = solve_start(start, par, feasibility_tolerance)
+        candidate.allowance = allowance
         spent += candidate.seconds
         slowest = max(slowest, candidate.seconds)
         line = Tried(candidate.label, phase, candidate.solver_status, candidate.cost, candidate.depth,

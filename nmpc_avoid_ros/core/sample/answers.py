@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from ..nlp.search import VIOLATION_TOLERANCE, Candidate, SearchReport
+from ..nlp.search import Candidate, SearchReport
 from ..nlp.tiers import TieredNlp
 from .memory import Sample
 from .status import StepStatus
@@ -48,7 +48,7 @@ class SampleAnswers:
         planned around (inflated by the margins), the choice is made again against the regions themselves:
         only if they cannot be avoided either is it `region_unavoidable` (else `margin_unavoidable`)."""
         mem, H = self.memory, self.fallback.horizon
-        if not (self.settings.mu > 0 and best.depth > VIOLATION_TOLERANCE):
+        if not (self.settings.mu > 0 and not best.clear):
             return result
         choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end)
         if choice is not None and choice.unavoidable and self._given != self._regions:

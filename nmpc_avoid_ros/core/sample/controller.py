@@ -307,7 +307,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         where the law does not hold (core/sample/feedback.py), with why in `sample.feedback`."""
         assert self.feedback_laws is not None
         s = self.settings
-        w, outcome = self.feedback_laws.answer(prepared, sample.par, s.feasibility_tolerance, clear=s.mu > 0) \
+        w, outcome = self.feedback_laws.answer(prepared, sample.par, s.feasibility_tolerance,
+                                                 sample.allowance if s.mu > 0 else math.inf) \
             if sample.in_domain else (None, FeedbackOutcome.INFEASIBLE)
         sample.feedback = outcome
         if w is None:
@@ -378,9 +379,10 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         """The sample planned from x [n] at `start` (s) towards the tracked target y_t [p], begun at `begin`
         (time.perf_counter): its parameters and the deadline of its solver calls."""
         self.tiered.set_time(start, self.settings.predict_obstacles)
-        budget = self.sample_budget()
-        return Sample(x, y_t, self.parameters(x, y_t, start), start, begin + SEARCH_SHARE * budget, begin + budget,
-                      self.in_solve_domain(x), measured=measured, delay=delay, command=command, begin=begin)
+        budget, par = self.sample_budget(), self.parameters(x, y_t, start)
+        return Sample(x, y_t, par, start, begin + SEARCH_SHARE * budget, begin + budget, self.in_solve_domain(x),
+                      measured=measured, delay=delay, command=command, begin=begin,
+                      allowance=self.fallback.allowance(x, command, par))
 
     def set_safe_input(self, u: Sequence[float]) -> None:
         """The model's safe input [m], a fallback candidate (InputError if malformed or outside the input box)."""

@@ -30,8 +30,9 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..errors import InputError
+from ..nlp.buffered import Buffered
 from ..nlp.parts import depth_function, problem_parts
-from ..nlp.search import VIOLATION_TOLERANCE
+from ..nlp.search import VIOLATION_TOLERANCE, depth_allowance
 from ..nlp.stop_at import StopAt
 from ..nlp.tracking import COLD_START_TIME_FACTOR, SEARCH_SHARE, NlpBase
 from ..problem.models import Model
@@ -97,6 +98,10 @@ class FallbackSelector:
         # JUDGED_KEEP_IN_MARGIN of their margin
         depth = self._judged_depth = depth_function(parts, model,
                                                     min(settings.keep_in_margin, JUDGED_KEEP_IN_MARGIN))
+        # the rows at x(0) as the NLP plans them (every margin), which no plan from x(0) can change
+        u0 = ca.SX.sym("u0", m)
+        rows = depth_function(parts, model)(x0, u0, par, 0.0)
+        self._initial_depth = Buffered(ca.Function("initial_depth", [x0, u0, par], [ca.mmax(ca.vertcat(rows, 0))]))
         x_lo, x_hi = np.array(settings.state_min, float), np.array(settings.state_max, float)
         states, excess = [x0], []
         x = x0
@@ -144,6 +149,12 @@ class FallbackSelector:
         if np.any(u < self._input_lo) or np.any(u > self._input_hi):
             raise InputError(f"safe_input {u.tolist()} is outside the input box")
         return u
+
+    def allowance(self, x: np.ndarray, u: np.ndarray | None, par: np.ndarray) -> float:
+        """The depth [g] a plan from x [n] (under u [m] for output-frame rows; None: the safe input) may predict
+        and be clear at the regular NLP's parameters par (core/nlp/search.py `depth_allowance`)."""
+        u = self.safe_input if u is None else u
+        return depth_allowance(float(self._initial_depth(x, u, par)[0][0]))
 
     def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
         """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""

@@ -137,10 +137,11 @@ class FeedbackLaws:
         values, by_w, by_p = (np.asarray(v) for v in self._cost_jacobian[id(nlp)](w, par))
         return LinearCosts(values.ravel(), by_w, by_p, w.copy(), par.copy())
 
-    def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float, clear: bool = True
-               ) -> tuple[np.ndarray | None, FeedbackOutcome]:
+    def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float,
+               allowance: float = VIOLATION_TOLERANCE) -> tuple[np.ndarray | None, FeedbackOutcome]:
         """The prepared plan's w moved to the parameters `par` of the sample that arrived, or None and why
-        (`clear`: the moved plan's slacks must be within VIOLATION_TOLERANCE, as a searched plan's depth)."""
+        (the moved plan's slacks must be within `allowance`, as a searched plan's depth to be clear: the sample's
+        `depth_allowance`, core/nlp/search.py; inf: not checked)."""
         law = prepared.law
         if law is None:
             return None, FeedbackOutcome.NO_LAW
@@ -152,7 +153,7 @@ class FeedbackLaws:
             return None, FeedbackOutcome.ACTIVE_SET_CHANGED
         nlp = prepared.nlp
         # the slacks bound every region row (s >= g), so feasible slacks within the tolerance keep it clear
-        slack_ok = not (clear and nlp._slack_index.size) or float(np.max(w[nlp._slack_index])) <= VIOLATION_TOLERANCE
+        slack_ok = not nlp._slack_index.size or float(np.max(w[nlp._slack_index])) <= allowance
         tolerance = max(feasibility_tolerance, MOVED_PLAN_TOLERANCE)
         if not slack_ok or float(self._violation[id(nlp)](w, par)[0][0]) > tolerance:
             return None, FeedbackOutcome.INFEASIBLE

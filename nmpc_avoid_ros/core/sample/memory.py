@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..nlp.search import Candidate
+from ..nlp.search import VIOLATION_TOLERANCE, Candidate
 from .feedback import Prepared
 from .mismatch import MismatchMargin
 from .status import FeedbackOutcome
@@ -83,6 +83,8 @@ class Sample:
     measured_at: float | None = None
     settled: bool = True
     sent_at: float | None = None
+    #: the depth its plans may predict and be clear (core/nlp/search.py `depth_allowance`)
+    allowance: float = VIOLATION_TOLERANCE
 
     def time_left(self) -> float:
         return self.deadline - clock.perf_counter()

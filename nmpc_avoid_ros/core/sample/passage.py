@@ -36,7 +36,7 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..errors import ConfigError
-from ..nlp.search import VIOLATION_TOLERANCE, Candidate, Start
+from ..nlp.search import Candidate, Start
 from ..nlp.tracking import NlpBase
 from ..problem.models import Model
 from ..problem.regions import Region
@@ -101,7 +101,7 @@ class Passage:
         def why(candidate: Candidate) -> str:
             long_offset = float(nlp.terms(candidate.w, par)[0][0])
             y_long = nlp.layout.y_a(candidate.w)
-            return ("penetrates" if candidate.depth > VIOLATION_TOLERANCE else
+            return ("penetrates" if not candidate.clear else
                     "offset not lower" if long_offset >= PASSAGE_GAIN * offset else
                     "y_a not past the block" if not guesses.crosses_block(y_a, y_long, par) else "")
 

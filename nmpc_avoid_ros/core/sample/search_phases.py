@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from ..nlp.search import VIOLATION_TOLERANCE, Candidate, SearchReport, Start, search
+from ..nlp.search import Candidate, SearchReport, Start, search
 from ..nlp.stagewise import COLD_START_ITERATIONS
 from ..nlp.tiers import TieredNlp
 from ..nlp.tracking import NlpBase
@@ -46,12 +46,12 @@ class SearchPhases:
         starts, phase = self._regular_starts(sample)
         report.phase = "passage_ended" if report.phase == "passage_ended" else phase
         best, last, spent = search(starts, sample.par, sample.time_left(), report, phase, s.feasibility_tolerance,
-                                   stop_at_clear=True)
+                                   stop_at_clear=True, allowance=sample.allowance)
         sample.seconds += spent
         sample.regular = best or last
         if best is None or mem.passage:
             return best, last
-        penetrating = s.mu > 0 and self.escape.available and best.depth > VIOLATION_TOLERANCE
+        penetrating = s.mu > 0 and self.escape.available and not best.clear
         # the passage's guesses, once due, run to their end before the escape's wait counts down again: else a
         # new escape cycle began after ESCAPE_RETRY_SAMPLES searches (fewer with feedback's two searches a
         # sample) and its vain end restarted the passage at its first guess, so later ones were never tried
@@ -124,7 +124,8 @@ class SearchPhases:
                                                                     s.escape_guesses_per_sample)
         report.phase = "escape"
         best, _, spent = search([guess_start(nlp, x, sample.par, g) for g in batch], sample.par, sample.time_left(),
-                                report, "escape", s.feasibility_tolerance, base=base, admit=escape_admission(base))
+                                report, "escape", s.feasibility_tolerance, base=base, admit=escape_admission(base),
+                                allowance=sample.allowance)
         sample.seconds += spent
         report.kept = best.label
         mem.escape_next = 0
@@ -149,7 +150,8 @@ class SearchPhases:
                                                        mem.passage_next, s.escape_guesses_per_sample)
         report.phase, mem.passage_next = "passage_try", 0
         entered, _, spent = search(starts, sample.par, sample.time_left(), report, "passage_try",
-                                   s.feasibility_tolerance, admit=self.passage.admit(base, sample.par))
+                                   s.feasibility_tolerance, admit=self.passage.admit(base, sample.par),
+                                   allowance=sample.allowance)
         sample.seconds += spent
         if entered is None:
             if rest:  # the next batch on the next sample
