@@ -96,8 +96,8 @@ def test_paper_run_with_the_terminal_set(paper_set):
     run = run_closed_loop(NmpcController(settings_), [-5.0, 0.0], [5.0], 50, "euler")
     assert run.status == ["ok"] * 50
     assert max_abs_product(run.x) <= 2.0005
-    # measured 36 (the equality: 33; docs/terminal_set.md)
-    assert settling_step(run.x[:, 0], 5.0, 0.05) <= 40
+    # no later than the equality's 33 (docs/terminal_set.md)
+    assert settling_step(run.x[:, 0], 5.0, 0.05) <= 33
     # the decrease with the set's shifted candidate (u(1..N-1), kappa(x(N))) holds at every sample
     assert sum(c["checked"] for c in run.certificate) == 49
     assert run.certificate[-1]["certificate_violations"] == 0

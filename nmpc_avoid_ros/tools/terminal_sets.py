@@ -33,6 +33,8 @@ X0 = np.array([-5.0, 0.0])
 TARGET = 5.0
 STEPS = 50
 TERMINALS = ("equality", "set")
+#: the initial y_a of the admissible range's extra starts
+RANGE_STARTS = (-5.9, -3.0, 0.0, 3.0, 5.9)
 
 
 def paper_run(horizon: int, terminal: str, mu: float) -> dict:
@@ -52,24 +54,31 @@ class Feasibility:
         self.nlp = TrackingNlp(base.replace(horizon=horizon, terminal=terminal, keep_in=(), max_iterations=500))
         self.n_slots = self.nlp.slot_layout.size
 
-    def solve(self, x0: np.ndarray, y_t: float, kappa: float, weight: float) -> tuple[bool, np.ndarray]:
-        """(solved and feasible, w) of P_N from x0 with V_o = kappa (y_a - y_t)^2 and stage weights `weight`."""
+    def solve(self, x0: np.ndarray, y_t: float, kappa: float, weight: float, y_guess: float | None = None
+              ) -> tuple[bool, np.ndarray]:
+        """(solved and feasible, w) of P_N from x0 with V_o = kappa (y_a - y_t)^2 and stage weights `weight`, from
+        a plan resting at x0 with y_a = y_guess (default x0's output)."""
         nlp, layout = self.nlp, self.nlp.layout
         par = nlp.parameters(x0, np.array([y_t]), np.zeros(self.n_slots), kappa=kappa, mu=0.0,
                              state_weights=np.full(layout.n, weight), input_weights=np.full(layout.m, weight),
                              keep_in_active=np.zeros(layout.n_keep_in))
         guess = nlp.fill_slacks(layout.join_w(np.zeros((layout.horizon, 1)), np.tile(x0, (layout.horizon, 1)),
-                                              x0[:1], None), par)
+                                              x0[:1] if y_guess is None else [y_guess], None), par)
         w, _, _, stats, _ = nlp.solve_here(guess, par, np.zeros(layout.n_w), np.zeros(nlp.lbg.size))
         ok = str(stats.get("return_status")) in SOLVED and nlp.violation(w, par) < 1e-6
         return ok, w
 
     def y_a_range(self, x0: np.ndarray) -> list[float | None]:
-        """[smallest, largest] admissible y_a from x0 (None where no feasible plan was found)."""
+        """[smallest, largest] admissible y_a from x0 (None where no feasible plan was found): the extremes over
+        starts with y_a at x0's output and at RANGE_STARTS (a local solver: each start may end in a local optimum)."""
         ends = []
-        for y_t in (-100.0, 100.0):
-            ok, w = self.solve(x0, y_t, 1.0, 1e-9)
-            ends.append(float(self.nlp.layout.y_a(w)[0]) if ok else None)
+        for y_t, pick in ((-100.0, min), (100.0, max)):
+            found = []
+            for y_guess in (None, *RANGE_STARTS):
+                ok, w = self.solve(x0, y_t, 1e4, 1e-9, y_guess)
+                if ok:
+                    found.append(float(self.nlp.layout.y_a(w)[0]))
+            ends.append(pick(found) if found else None)
         return ends
 
     def feasible_grid(self, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:

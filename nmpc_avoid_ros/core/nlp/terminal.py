@@ -37,7 +37,7 @@ from ..problem.terminal import (
 from .codegen import cache_dir
 
 #: bump when the computation changes: old cache files are then not read
-CACHE_VERSION = "terminal-1"
+CACHE_VERSION = "terminal-2"
 #: the solver paths that carry `terminal: set`
 TERMINAL_SET_SOLVERS = ("ipopt",)
 

@@ -40,7 +40,7 @@ from .intervals import interval_evaluate
 from .model import Model
 
 #: the default margin: P = (1 + margin) P_lqr (docs/terminal_set.md compares margins)
-MARGIN = 3.0
+MARGIN = 1000.0
 #: Chebyshev-Lobatto nodes at which the LQR is solved, and the degree of P's fit
 FIT_NODES = 41
 FIT_DEGREE = 24
