@@ -128,10 +128,20 @@ def test_terminal_set_admits_a_wider_steady_output_range_than_the_equality(paper
     assert with_set[0] < equality[0] - 0.03 and with_set[1] > equality[1] + 0.2
 
 
-@pytest.mark.parametrize("solver", ["fatrop", "sqp", "sqp_hpipm"])
-def test_stagewise_paths_refuse_the_terminal_set_by_name(solver):
+@pytest.mark.parametrize("solver", ["sqp", "sqp_hpipm"])
+def test_sqp_paths_refuse_the_terminal_set_by_name(solver):
     with pytest.raises(ConfigError, match=f"terminal: set.*{solver}"):
         make_nlp(SETTINGS.replace(solver=solver))
+
+
+def test_fatrop_path_with_the_terminal_set_runs_the_ipopt_loop(paper_set):
+    """The stage-wise formulation (V_f, the set row and x(N)'s slack at stage N-1) gives IPOPT's loop."""
+    settings_, _, _ = paper_set
+    runs = [run_closed_loop(NmpcController(settings_.replace(solver=solver)), [-5.0, 0.0], [5.0], 50, "euler")
+            for solver in ("fatrop", "ipopt")]
+    assert runs[0].status == ["ok"] * 50
+    np.testing.assert_allclose(runs[0].x, runs[1].x, atol=1e-4)
+    assert runs[0].certificate[-1]["certificate_violations"] == 0
 
 
 def test_models_without_the_ingredients_are_refused_with_the_reason():

@@ -12,6 +12,8 @@ everything that depends on it is written per stage with that stage's copy. Per s
              s(k) >= depth(x(k), u(k)) and >= depth at the integration_steps - 1 sub-step states
              towards x(k+1); hard(x(k), u(k)) for k >= 1 (and rows that use u at k = 0)
              k = N: x(N) = x_a(y(N))                                     (terminal equality)
+             terminal: set instead: at k = N-1, with x(N) = f(x(N-1), u(N-1)): V_f / alpha - 1 <= 0
+             and s_N >= depth(x(N)) (a control of stage N-1), cost V_f + mu |s_N|^2 (core/nlp/terminal.py)
     cost     k = 0: kappa |y(0) - y_t|^2 + 2 mu |s_a|^2   (x(N) = x_a, so F(x(N)) = F(x_a))
              |x(k) - x_a(y(k))|_Q^2 + |u(k) - u_a(y(k))|_R^2 + mu |s(k)|^2
 
@@ -34,6 +36,7 @@ from ..errors import ConfigError
 from ..problem.models import Model, make_model
 from .between import between_samples, worst_of
 from .parts import check_sizes, depth_function, problem_parts
+from .terminal import terminal_constraint
 from .tracking import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp
 
 #: iteration budget of a cold start (no previous plan), also in core/sample/controller.py
@@ -93,9 +96,6 @@ class StagewiseNlp(NlpBase):
         if settings.input_rate_max:
             raise ConfigError(f"input_rate_max couples the stages' inputs, which solver {settings.solver!r} does not "
                               "take: use solver ipopt")
-        if settings.terminal != "equality":
-            raise ConfigError(f"terminal: set is built for solver ipopt (multiple shooting) only; solver "
-                              f"{settings.solver!r} has the terminal equality: use terminal: equality or solver ipopt")
         if not (settings.use_closed_form_steady_state and self.model.steady_state is not None):
             raise ConfigError(f"solver {settings.solver!r} needs the closed-form steady state of the model "
                               "(use_closed_form_steady_state: true); use solver ipopt otherwise")
@@ -120,6 +120,10 @@ class StagewiseNlp(NlpBase):
         U = [ca.SX.sym(f"u{k}", m) for k in range(N)]
         S = [ca.SX.sym(f"s{k}", nd) for k in range(N)]
         s_a = ca.SX.sym("s_a", nd)
+        # terminal: set: x(N) = f(x(N-1), u(N-1)) is not x_a; its slack, V_f and the set row sit at stage N-1
+        # (a stage's rows may use only its own variables, and stage N has no controls)
+        with_set = s.terminal == "set"
+        s_n = ca.SX.sym("s_n", nd if with_set else 0)
         inf = np.inf
         w, lbw, ubw, g, lbg, ubg = [], [], [], [], [], []
         slack_vars, slack_depths, stage_start, g_start = [], [], [], []
@@ -136,18 +140,21 @@ class StagewiseNlp(NlpBase):
             lbw += [-inf] * p
             ubw += [inf] * p
             if k == N:
-                g.append(X[N] - x_a)  # terminal equality (eq. 20h)
-                lbg += [0.0] * n
-                ubg += [0.0] * n
+                if not with_set:
+                    g.append(X[N] - x_a)  # terminal equality (eq. 20h)
+                    lbg += [0.0] * n
+                    ubg += [0.0] * n
                 offset += n + p
                 break
-            controls = [U[k], S[k]] + ([s_a] if k == 0 else [])
+            last = with_set and k == N - 1
+            controls = [U[k], S[k]] + ([s_a] if k == 0 else []) + ([s_n] if last else [])
+            blocks = 1 + (k == 0) + last
             w += controls
             # no s >= 0 bound: min mu s^2 s.t. s >= g already gives s = max(0, g), and the bound
             # made the QPs degenerate (s >= 0 and s >= g both active on a region's boundary)
-            lbw += list(s.input_min) + [-inf] * nd * (2 if k == 0 else 1)
-            ubw += list(s.input_max) + [inf] * nd * (2 if k == 0 else 1)
-            offset += n + p + m + nd * (2 if k == 0 else 1)
+            lbw += list(s.input_min) + [-inf] * nd * blocks
+            ubw += list(s.input_max) + [inf] * nd * blocks
+            offset += n + p + m + nd * blocks
             # gap-closing constraints first: FATROP's structure detection expects them so
             points = path(X[k], U[k])
             g.append(ca.vertcat(X[k + 1] - points[:, -1], Y[k + 1] - Y[k]))
@@ -169,7 +176,8 @@ class StagewiseNlp(NlpBase):
                     lbg += [-inf] * parts.n_hard
                     ubg += [0.0] * parts.n_hard
                 v_offset = parts.offset_cost(Y[0])
-                cost += v_offset + 2 * parts.mu * ca.dot(s_a, s_a) + regularise * ca.dot(s_a, s_a)
+                counted = 1 if with_set else 2  # with the equality F(x(N)) = F(x_a): one slack counted twice
+                cost += v_offset + counted * parts.mu * ca.dot(s_a, s_a) + regularise * ca.dot(s_a, s_a)
                 slack_vars.append(s_a)
                 slack_depths.append(depth_a)
             depth = parts.avoidance(X[k], U[k], k * s.sample_time)
@@ -184,6 +192,15 @@ class StagewiseNlp(NlpBase):
                 g.append(parts.hard_g(X[k], U[k])[rows])
                 lbg += [-inf] * len(rows)
                 ubg += [0.0] * len(rows)
+            if last:
+                x_n = points[:, -1]
+                depth_n = parts.avoidance(x_n, u_a, N * s.sample_time)
+                v_f, rows, lo, hi = terminal_constraint(s, mdl, x_n, x_a, Y[k])
+                g += [s_n - depth_n, rows]
+                lbg += [0.0] * nd + lo
+                ubg += [inf] * nd + hi
+                cost += v_f + (parts.mu + regularise) * ca.dot(s_n, s_n)
+                tracking += v_f
             dx, du = X[k] - x_a, U[k] - u_a
             stage = ca.dot(parts.q * dx, dx) + ca.dot(parts.r * du, du)
             tracking += stage
@@ -192,9 +209,13 @@ class StagewiseNlp(NlpBase):
             slack_depths.append(depth)
         w = ca.vertcat(*w)
         g = ca.vertcat(*g)
+        if with_set:
+            slack_vars.append(s_n)
+            slack_depths.append(depth_n)
         all_depths = ca.vertcat(*slack_depths)
-        # the reported V_a is the paper's, with x(N) = x_a counted twice as in the cost
-        v_avoid = parts.mu * (ca.sumsqr(ca.fmax(0, ca.vertcat(*slack_depths[1:]))) + 2 * ca.sumsqr(ca.fmax(0, depth_a)))
+        # the reported V_a is the paper's, with x(N) = x_a counted twice as in the cost (the equality)
+        v_avoid = parts.mu * (ca.sumsqr(ca.fmax(0, ca.vertcat(*slack_depths[1:])))
+                              + counted * ca.sumsqr(ca.fmax(0, depth_a)))
         self.lbx, self.ubx = np.array(lbw, float), np.array(ubw, float)
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
         self.layout = StagewiseLayout(n, m, p, N, parts.n_keep_in, nd, w.numel(), np.array(stage_start))
@@ -220,24 +241,26 @@ class StagewiseNlp(NlpBase):
         index = ca.Function("index", [w], [ca.vertcat(*slack_vars)])
         probe = np.arange(w.numel(), dtype=float)
         self._slack_index = np.asarray(index(probe), dtype=int).ravel()
-        # blocks of the uniform stages 1..N-1, for the dual shift
-        self._x_blocks = {k: slice(stage_start[k], stage_start[k + 1]) for k in range(1, N)}
-        self._g_blocks = {k: slice(g_start[k], g_start[k + 1]) for k in range(1, N)}
+        # blocks of the uniform stages 1..N-1 (N-2 with the terminal set, whose rows sit at stage N-1), for the dual
+        # shift
+        self._last_uniform = N - 2 if with_set else N - 1
+        self._x_blocks = {k: slice(stage_start[k], stage_start[k + 1]) for k in range(1, self._last_uniform + 1)}
+        self._g_blocks = {k: slice(g_start[k], g_start[k + 1]) for k in range(1, self._last_uniform + 1)}
 
     def shift_duals(self, lam_x: np.ndarray, lam_g: np.ndarray, shift: int) -> tuple[np.ndarray, np.ndarray]:
         """Duals of stage k+shift moved to stage k, as the primal guess is shifted.
 
-        Stages 1..N-1 have identical variable and constraint layouts, so their multipliers move
-        block by block; stage 0 (x0 equality, s_a, lambda Z) and stage N keep their own.
+        Stages 1..N-1 have identical variable and constraint layouts (1..N-2 with the terminal set), so their
+        multipliers move block by block; stage 0 (x0 equality, s_a, lambda Z) and the last stages keep their own.
         """
-        N = self.layout.horizon
-        if shift <= 0 or N < 3:
+        last = self._last_uniform
+        if shift <= 0 or last < 2:
             return lam_x, lam_g
         lam_x, lam_g = lam_x.copy(), lam_g.copy()
         xs = self._x_blocks
         gs = self._g_blocks
-        for k in range(1, N - 1):
-            src = min(k + shift, N - 1)
+        for k in range(1, last):
+            src = min(k + shift, last)
             lam_x[xs[k]] = lam_x[xs[src]]
             lam_g[gs[k]] = lam_g[gs[src]]
         return lam_x, lam_g
