@@ -1,6 +1,8 @@
-"""`obstacles`: publishes a scene's obstacles as stamped markers on `obstacles`, at a fixed rate.
+"""`obstacles`: publishes a scene's obstacles as stamped markers on `obstacles`, at a fixed rate; or, with
+`source: scan` or `grid`, the regions fitted to a laser scan or an occupancy grid (nodes/obstacles_sensed.py).
 
     ros2 run nmpc_avoid_ros obstacles --ros-args -p scene:=config/scenes/crossing_walker.yaml -p rate:=10.0
+    ros2 run nmpc_avoid_ros obstacles --ros-args -p source:=scan
 
 Scene time 0 is the arrival of the first `state` message (`start_on: state`, so the obstacles
 start with the plant) or the node's start (`start_on: start`). Every tick publishes the obstacles
@@ -25,11 +27,16 @@ from ..core.errors import ConfigError
 from ..core.loop.scene import load_scene
 from ..ros.markers import delete_all_marker, region_marker
 from ..ros.parameters import LATCHED_QOS, STREAM_QOS, ParamSpec, declare
+from .obstacles_sensed import SensedObstacles
 from .runner import run_node
 
 START_MODES = ("state", "start")
+SOURCES = ("scene", "scan", "grid")
 
 OBSTACLE_SPECS = [
+    ParamSpec("source", "scene", "what the obstacles come from: a scene file, a LaserScan on `scan` or an "
+              "OccupancyGrid on `map` (both with `odom`)", ParameterType.PARAMETER_STRING, read_only=True,
+              choices=SOURCES),
     ParamSpec("scene", "", "scene YAML whose obstacles are published", ParameterType.PARAMETER_STRING,
               read_only=True),
     ParamSpec("rate", 10.0, "markers published per second, Hz", ParameterType.PARAMETER_DOUBLE, read_only=True,
@@ -38,23 +45,31 @@ OBSTACLE_SPECS = [
               "false: the controller estimates it from the stamps", ParameterType.PARAMETER_BOOL, read_only=True),
     ParamSpec("start_on", "state", "scene time 0: the first state message, or the node's start",
               ParameterType.PARAMETER_STRING, read_only=True, choices=START_MODES),
-    ParamSpec("ns_prefix", "scene", "marker namespace prefix", ParameterType.PARAMETER_STRING, read_only=True),
+    ParamSpec("ns_prefix", "", "marker namespace prefix (empty: the source's name)", ParameterType.PARAMETER_STRING,
+              read_only=True),
 ]
 
 
 class ObstaclesNode(Node):
-    """Thin node: scene time -> core regions -> markers."""
+    """Thin node: scene time -> core regions -> markers (or a sensed source's, SensedObstacles)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("obstacles", **kwargs)
         values = declare(self, OBSTACLE_SPECS)
+        if values["source"] not in SOURCES:
+            raise ConfigError(f"source must be one of {SOURCES}, got {values['source']!r}")
+        self.prefix = str(values["ns_prefix"]) or values["source"]
+        if values["source"] != "scene":
+            self.sensed = SensedObstacles(self, values["source"], self.prefix)
+            self.get_logger().info(f"obstacles ready: regions fitted to the {values['source']} and odom, "
+                                   f"published as ns {self.prefix!r}")
+            return
         if not values["scene"]:
             raise ConfigError("parameter scene is required: the scene YAML whose obstacles to publish")
         if values["start_on"] not in START_MODES:
             raise ConfigError(f"start_on must be one of {START_MODES}, got {values['start_on']!r}")
         self.scene = load_scene(values["scene"])
         self.explicit = bool(values["explicit_velocity"])
-        self.prefix = str(values["ns_prefix"])
         self.started: float | None = None if values["start_on"] == "state" else self.now()
         self.published = 0
         self.pub = self.create_publisher(MarkerArray, "obstacles", LATCHED_QOS)
