@@ -195,7 +195,7 @@ class StagewiseNlp(NlpBase):
             if last:
                 x_n = points[:, -1]
                 depth_n = parts.avoidance(x_n, u_a, N * s.sample_time)
-                v_f, rows, lo, hi = terminal_constraint(s, mdl, x_n, x_a, Y[k])
+                v_f, rows, lo, hi = terminal_constraint(s, mdl, x_n, x_a, Y[k], u_a)
                 g += [s_n - depth_n, rows]
                 lbg += [0.0] * nd + lo
                 ubg += [inf] * nd + hi

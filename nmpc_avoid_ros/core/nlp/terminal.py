@@ -37,7 +37,7 @@ from ..problem.terminal import (
 from .codegen import cache_dir
 
 #: bump when the computation changes: old cache files are then not read
-CACHE_VERSION = "terminal-2"
+CACHE_VERSION = "terminal-3"
 #: the solver paths that carry `terminal: set`
 TERMINAL_SET_SOLVERS = ("ipopt", "fatrop")
 #: why the others do not: their Gauss-Newton Hessian is the cost's own, and V_f = e'P(y_a)e makes it indefinite
@@ -101,22 +101,24 @@ def _compute_and_store(settings: ControllerSettings, model: Model, path: Path) -
     return ingredients
 
 
-def terminal_constraint(settings: ControllerSettings, model: Model, x_n: ca.SX, x_a: ca.SX, y_a: ca.SX
-                        ) -> tuple[ca.SX | None, ca.SX, list[float], list[float]]:
-    """(terminal cost or None, rows g, lbg, ubg) of the terminal condition on x(N) [n] given x_a [n], y_a [p].
+def terminal_constraint(settings: ControllerSettings, model: Model, x_n: ca.SX, x_a: ca.SX, y_a: ca.SX,
+                        u_a: ca.SX) -> tuple[ca.SX | None, ca.SX, list[float], list[float]]:
+    """(terminal cost or None, rows g, lbg, ubg) of the terminal condition on x(N) [n] given x_a [n], y_a [p], u_a [m].
 
-    equality: x(N) - x_a = 0 (no cost). set: V_f = e' P(y_a) e with e = x(N) - x_a, and the row
-    V_f / alpha(y_a) - 1 <= 0 (scaled by alpha: alpha spans orders of magnitude over y_a)."""
+    equality: x(N) - x_a = 0 (no cost). set: V_f = e' P(y_a) e with e = x(N) - x_a, and per level of alpha(y_a)
+    (TerminalIngredients.levels, whose minimum alpha is) the row V_f / level - 1 <= 0 (scaled: alpha spans orders
+    of magnitude over y_a)."""
     if settings.terminal == "equality":
         n = model.n
         return None, x_n - x_a, [0.0] * n, [0.0] * n
     if settings.solver not in TERMINAL_SET_SOLVERS:
         raise ConfigError(f"terminal: set is built for solver {' and '.join(TERMINAL_SET_SOLVERS)}; solver "
                           f"{settings.solver!r} refuses it ({SQP_REFUSAL}): use terminal: equality or another solver")
-    p_matrix, alpha = terminal_ingredients(settings, model).symbolic(y_a)
+    ingredients = terminal_ingredients(settings, model)
     e = x_n - x_a
-    v_f = ca.dot(e, ca.mtimes(p_matrix, e))
-    return v_f, v_f / alpha - 1, [-np.inf], [0.0]
+    v_f = ca.dot(e, ca.mtimes(ingredients.symbolic(y_a), e))
+    levels = ingredients.levels(y_a, ca.vertcat(x_a, u_a))
+    return v_f, ca.vertcat(*[v_f / level - 1 for level in levels]), [-np.inf] * len(levels), [0.0] * len(levels)
 
 
 class ShiftedTail:
@@ -135,5 +137,5 @@ class ShiftedTail:
         """(u [m], x [n]) that extend a plan ending in x(N) [n] with steady state (y_a [p], x_a [n], u_a [m])."""
         if not self.with_set:
             return np.asarray(u_a, float), np.asarray(x_a, float)
-        u = local_controller(self.problem, self.ingredients, x_n, float(np.ravel(y_a)[0]))
+        u = local_controller(self.problem, self.ingredients, x_n, np.ravel(y_a))
         return u, np.asarray(self.step(x_n, u), float).ravel()

@@ -263,7 +263,7 @@ class TrackingNlp(NlpBase):
                 lbg += [0.0] * nd
                 ubg += [np.inf] * nd
         depth = ca.vertcat(*[worst_of(d, e) for d, e in zip(depth, between)])
-        terminal_cost, rows, lo, hi = terminal_constraint(s, mdl, states[N], x_a, y_a)  # eq. 20h, or 8g with V_f
+        terminal_cost, rows, lo, hi = terminal_constraint(s, mdl, states[N], x_a, y_a, u_a)  # eq. 20h, or 8g
         g.append(rows)
         lbg, ubg = lbg + lo, ubg + hi
         lam = s.steady_state_scale

@@ -61,7 +61,10 @@ class TerminalIngredients:
     log_alpha_coefficients: [ALPHA_DEGREE + 1] of log alpha in t; margin, q [n], r [m]: what P was made for;
     grid_y [K], grid_alpha [K]: the certified alpha at the grid (fitted alpha <= it); midpoint_ratio: the
     smallest certified / fitted alpha at the grid's midpoints (sampled; >= 1 where the fit holds there);
-    seconds: the computation's wall time; cache: 'computed' or 'hit' (set by the caller that cached it)."""
+    seconds: the computation's wall time; cache: 'computed' or 'hit' (set by the caller that cached it).
+    box_rows [k, 3]: a linear model's set (`compute_linear_ingredients`): P constant (degree 0), no decrease limit
+    (log_alpha_coefficients empty), and per finite bound of Z a row (index j in z = (x, u), bound b_j, weight w_j):
+    the level (b_j - z_s,j)^2 / w_j keeps the ellipsoid on the right side of that bound."""
 
     y_low: float
     y_high: float
@@ -76,35 +79,48 @@ class TerminalIngredients:
     fit_error: float
     seconds: float
     cache: str = field(default="computed", compare=False)
+    box_rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def _t(self, y):
         return (y - (self.y_high + self.y_low) / 2) / ((self.y_high - self.y_low) / 2)
 
-    def cost_matrix(self, y_a: float) -> np.ndarray:
+    def cost_matrix(self, y_a: float | np.ndarray) -> np.ndarray:
         """P(y_a) [n, n]."""
-        t = float(self._t(y_a))
+        t = float(self._t(float(np.ravel(y_a)[0])))
         return np.polynomial.chebyshev.chebval(t, np.moveaxis(self.p_coefficients, -1, 0))
 
-    def alpha(self, y_a: float) -> float:
-        """alpha(y_a), the level of the terminal set (V_f units)."""
-        return float(np.exp(np.polynomial.chebyshev.chebval(float(self._t(y_a)), self.log_alpha_coefficients)))
+    def levels(self, y_a, z_s) -> list:
+        """The levels whose minimum is alpha(y_a): the certified decrease limit (nonlinear models) and one per box
+        row (linear models); z_s = (x_a, u_a) [n + m]; numbers or CasADi expressions."""
+        levels = []
+        if self.log_alpha_coefficients.size:
+            t = self._t(y_a[0] if isinstance(y_a, ca.SX) else float(np.ravel(y_a)[0]))
+            exponent = _clenshaw(self.log_alpha_coefficients, t)
+            levels.append(ca.exp(exponent) if isinstance(exponent, ca.SX) else float(np.exp(exponent)))
+        for j, bound, weight in self.box_rows:
+            levels.append((bound - z_s[int(j)]) ** 2 / weight)
+        return levels
 
-    def symbolic(self, y_a: ca.SX) -> tuple[ca.SX, ca.SX]:
-        """(P(y_a) [n, n], alpha(y_a)) as CasADi expressions of y_a [1] (Clenshaw's recurrence)."""
+    def alpha(self, y_a: float | np.ndarray, z_s: np.ndarray | None = None) -> float:
+        """alpha(y_a), the level of the terminal set (V_f units); z_s = (x_a, u_a), needed with box rows."""
+        return float(min(self.levels(y_a, z_s)))
+
+    def symbolic(self, y_a: ca.SX) -> ca.SX:
+        """P(y_a) [n, n] as a CasADi expression of y_a (Clenshaw's recurrence in its first entry)."""
         t = self._t(y_a[0])
         n = self.p_coefficients.shape[0]
         p = ca.SX(n, n)
         for i in range(n):
             for j in range(i, n):
                 p[i, j] = p[j, i] = _clenshaw(self.p_coefficients[i, j], t)
-        return p, ca.exp(_clenshaw(self.log_alpha_coefficients, t))
+        return p
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items() if k != "cache"}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> TerminalIngredients:
-        arrays = ("q", "r", "p_coefficients", "log_alpha_coefficients", "grid_y", "grid_alpha")
+        arrays = ("q", "r", "p_coefficients", "log_alpha_coefficients", "grid_y", "grid_alpha", "box_rows")
         return cls(**{k: (np.asarray(v, float) if k in arrays else v) for k, v in data.items()})
 
 
@@ -124,14 +140,11 @@ class TerminalProblem:
         if model.steady_state is None:
             raise ConfigError(f"terminal: set needs the closed-form steady state g_x, g_u of the model; {model.name} "
                               "has none (its steady states are constraints, eq. 8e-8f): use terminal: equality")
-        if model.p != 1:
-            raise ConfigError(f"terminal: set is computed for models with one output (p = 1); {model.name} has "
-                              f"p = {model.p} (docs/terminal_set.md): use terminal: equality")
         self.model, self.n, self.m = model, model.n, model.m
         self.q, self.r = np.diag(np.asarray(q, float)), np.diag(np.asarray(r, float))
         self.box = [np.asarray(b, float) for b in (state_min, state_max, input_min, input_max)]
         self.scale = scale
-        x, u, y = ca.SX.sym("x", self.n), ca.SX.sym("u", self.m), ca.SX.sym("y", 1)
+        x, u, y = ca.SX.sym("x", self.n), ca.SX.sym("u", self.m), ca.SX.sym("y", model.p)
         nxt = step(x, u)
         z = ca.vertcat(x, u)
         self.jacobians = ca.Function("AB", [x, u], [ca.jacobian(nxt, x), ca.jacobian(nxt, u)])
@@ -139,8 +152,15 @@ class TerminalProblem:
         self.hessians = ca.Function("H", [x, u], [ca.vertcat(*[ca.vec(ca.densify(h)) for h in hessians])])
         x_s, u_s = model.steady_state(y)
         self.steady = ca.Function("steady", [y], [ca.vertcat(x_s), ca.vertcat(u_s)])
+        a_s, b_s = self.jacobians(ca.vertcat(x_s), ca.vertcat(u_s))
+        #: f is linear: no remainder, and one LQR for every steady state (compute_linear_ingredients)
+        self.linear = all(ca.densify(h).is_zero() for h in hessians) and not ca.depends_on(ca.vertcat(
+            ca.vec(a_s), ca.vec(b_s)), y)
+        if model.p != 1 and not self.linear:
+            raise ConfigError(f"terminal: set is computed for nonlinear models with one output (p = 1); {model.name} "
+                              f"has p = {model.p} (docs/terminal_set.md): use terminal: equality")
 
-    def steady_state(self, y: float) -> tuple[np.ndarray, np.ndarray]:
+    def steady_state(self, y: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x_s, u_s = self.steady(y)
         return np.asarray(x_s, float).ravel(), np.asarray(u_s, float).ravel()
 
@@ -226,9 +246,38 @@ class TerminalProblem:
         return float(np.exp(lo))
 
 
+def compute_linear_ingredients(problem: TerminalProblem, margin: float = MARGIN) -> TerminalIngredients:
+    """A linear model's ingredients, for any number of outputs: one P = (1 + margin) P_lqr and K for every steady
+    state (A, B do not depend on it), D = margin (Q + K'RK) > 0 and no remainder, so V_f decreases by at least l in
+    all of R^n (proven, no grid); the set is the largest sublevel set inside Z, one level per finite bound (exact)."""
+    start = time.perf_counter()
+    y0 = np.zeros(problem.model.p)
+    a, b = problem.linearisation(y0)
+    try:
+        p = (1 + margin) * solve_discrete_are(a, b, problem.q, problem.r)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise ConfigError(f"terminal: set: the LQR of {problem.model.name} has no stabilising solution ({exc}): "
+                          "the model is not stabilisable (paper Assumption 5): use terminal: equality") from exc
+    k = problem.gain(y0, p, margin)
+    p_inv = np.linalg.inv(p)
+    weights = np.concatenate([np.diag(p_inv), np.diag(k @ p_inv @ k.T)])
+    lower = np.concatenate([problem.box[0], problem.box[2]])  # (x_min, u_min), (x_max, u_max) over z = (x, u)
+    upper = np.concatenate([problem.box[1], problem.box[3]])
+    # a row whose coordinate the ellipsoid does not move (weight 0) bounds nothing
+    rows = [(j, bound, weights[j]) for bounds in (lower, upper) for j, bound in enumerate(bounds)
+            if np.isfinite(bound) and weights[j] > 0]
+    box_rows = np.array([row for row in rows if np.isfinite(row[1])], float).reshape(-1, 3)
+    return TerminalIngredients(-1.0, 1.0, margin, np.diag(problem.q).copy(), np.diag(problem.r).copy(), p[:, :, None],
+                               np.zeros(0), np.zeros(0), np.zeros(0), np.inf, 0.0, time.perf_counter() - start,
+                               box_rows=box_rows)
+
+
 def compute_terminal_ingredients(problem: TerminalProblem, margin: float = MARGIN) -> TerminalIngredients:
-    """P(y_a) and a certified alpha(y_a) over the steady outputs in lambda Z (module docstring).
-    ConfigError where the LQR has no stabilising solution (Assumption 5 fails) or no alpha > 0 is certified."""
+    """P(y_a) and a certified alpha(y_a) over the steady outputs in lambda Z (module docstring); a linear model's
+    by `compute_linear_ingredients`. ConfigError where the LQR has no stabilising solution (Assumption 5 fails) or
+    no alpha > 0 is certified."""
+    if problem.linear:
+        return compute_linear_ingredients(problem, margin)
     start = time.perf_counter()
     y_low, y_high = problem.output_range()
     centre, half = (y_high + y_low) / 2, max((y_high - y_low) / 2, 1e-9)
@@ -276,8 +325,8 @@ def compute_terminal_ingredients(problem: TerminalProblem, margin: float = MARGI
     return ingredients
 
 
-def local_controller(problem: TerminalProblem, ingredients: TerminalIngredients, x: np.ndarray, y_a: float
-                     ) -> np.ndarray:
+def local_controller(problem: TerminalProblem, ingredients: TerminalIngredients, x: np.ndarray,
+                     y_a: float | np.ndarray) -> np.ndarray:
     """kappa(x, y_a) = u_a + K(y_a) (x - x_a) [m]."""
     x_s, u_s = problem.steady_state(y_a)
     k = problem.gain(y_a, ingredients.cost_matrix(y_a), ingredients.margin)
