@@ -12,6 +12,7 @@ max_polygons), so the regions that matter first are the ones it gets.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -88,6 +89,9 @@ class Perception:
         # neighbouring cells (diagonals too) are one object, whatever the gap setting
         gap = max(s.fit.cluster_gap, 1.5 * grid.resolution)
         fitted = fit_regions(points, robot.position, robot.position, s.fit, s.frame, gap=gap)
+        # the points are cell centres: grown by half a cell's diagonal, a region covers its cells whole
+        half_cell = grid.resolution * math.sqrt(0.5)
+        fitted = [dataclasses.replace(f, region=f.region.inflated(half_cell)) for f in fitted]
         return self._track(fitted, stamp, len(points))
 
     def _track(self, fitted: list[Fitted], stamp: float, points: int, not_finite: int = 0,
