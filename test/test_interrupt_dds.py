@@ -166,8 +166,10 @@ def test_deactivate_mid_solve_is_honoured_within_a_second_then_activate_serves_a
 def test_a_late_sample_is_covered_by_the_plans_next_inputs(ros_graph):
     """Timer mode, a plan in force; then the long solve's regions and state: that step takes ~4 s
     (abandoned at 0.8 max_solve_time, measured offline: 4.04 s). Meanwhile the node's late cover
-    (nodes/controller_threads.py) publishes the plan's next inputs, so no gap between two commands
-    is longer than 1.5 sample periods, and the samples it covered are counted."""
+    (nodes/controller_threads.py) publishes the plan's next inputs, each when the one before has acted
+    its sample period, so no gap between two commands is longer than 1.2 sample periods (measured 1.01;
+    the cover before waited for 0.2 periods past the tick: up to 1.26 and its wake-up), and the samples it
+    covered are counted."""
     _, _, start, probe = ros_graph
     p = probe()
     listen = Listener(p)
@@ -190,7 +192,7 @@ def test_a_late_sample_is_covered_by_the_plans_next_inputs(ros_graph):
     late = [int(d["late_samples"]) for d in listen.diags if "late_samples" in d]
     print(f"late cover: {len(during)} commands in 5 s after the switch, max gap {gap:.3f} s, "
           f"late_samples {late[-1] if late else None}")
-    assert gap <= 1.5 * SAMPLE_TIME, (gap, during, ctrl.output()[-3000:])
+    assert gap <= 1.2 * SAMPLE_TIME, (gap, during, ctrl.output()[-3000:])
     assert all(math.isfinite(v) for c in listen.commands for v in c), listen.commands
     # the step returned after ~4 s: its diagnostics count the samples the cover answered meanwhile
     assert listen.spin_until(lambda: any(int(d.get("late_samples", 0)) >= 5 for d in listen.diags), 60), \
