@@ -1,10 +1,11 @@
 """Points (m, odom) -> clusters -> the controller's region shapes: circles and thin boxes.
 
 Clustering is single linkage cut at `cluster_gap`: two returns closer than the gap belong to one
-object, and so do chains of them. `scipy.spatial.cKDTree.query_pairs` finds the close pairs
-(O(K log K)) and `scipy.sparse.csgraph.connected_components` joins them: exact single linkage
-without building the full dendrogram (scipy.cluster.hierarchy would, O(K^2) in memory), the same
-for an ordered scan (a full turn wraps around) and for the unordered cells of a grid.
+object, and so do chains of them. `scipy.sparse.csgraph.connected_components` joins the close
+pairs: exact single linkage without building the full dendrogram (scipy.cluster.hierarchy would,
+O(K^2) in memory). The pairs of a scan are its neighbouring beams (O(K), a full turn closing on its
+first beam), those of a grid's unordered cells every pair within the gap
+(`scipy.spatial.cKDTree.query_pairs`, O(K log K)).
 
 Each cluster is fitted by its principal axes (of its 2x2 covariance):
 
@@ -22,8 +23,10 @@ Each cluster is fitted by its principal axes (of its 2x2 covariance):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -70,56 +73,96 @@ class FitSettings:
 
 @dataclass(frozen=True)
 class Fitted:
-    """One fitted region: `kind` (CIRCLE or WALL), the region (odom), and its nearest return's distance (m)
-    from the robot, by which the nearest regions are kept when there are more than the slots hold."""
+    """One fitted shape in odom: `kind` CIRCLE (`size` = (radius, radius)) or WALL (a box of `size` = (length,
+    thickness) along `yaw`), its `center` (m), and its nearest return's distance (m) from the robot, by which the
+    nearest are kept when there are more than the slots hold. The region itself is built on first use: only the
+    kept ones pay for it."""
 
     kind: str
-    region: Ellipse | Polygon
+    center: tuple[float, float]
+    size: tuple[float, float]
+    yaw: float
     distance: float
+    frame: str = "output"
+
+    @cached_property
+    def region(self) -> Ellipse | Polygon:
+        if self.kind == CIRCLE:
+            return Ellipse(self.center, self.size, 0.0, self.frame)
+        return rotated_box(self.center, self.size, self.yaw, self.frame)
+
+    @cached_property
+    def planes(self) -> np.ndarray:
+        """A wall's half-planes (nx, ny, b) [4, 3] (outward unit normals: inside iff n . p < b for all)."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        normals = np.array([[c, s], [-s, c], [-c, -s], [s, -c]])
+        half = np.array([self.size[0], self.size[1], self.size[0], self.size[1]]) / 2
+        return np.column_stack([normals, normals @ np.asarray(self.center) + half])
+
+    def inflated(self, margin: float) -> Fitted:
+        """Grown by `margin` (m) on every side (a box's corners mitred: Polygon.inflated of a rectangle)."""
+        grow = margin if self.kind == CIRCLE else 2 * margin
+        return dataclasses.replace(self, size=(self.size[0] + grow, self.size[1] + grow))
 
 
-def cluster_labels(points: np.ndarray, gap: float) -> tuple[int, np.ndarray]:
-    """Single-linkage clusters of points [K, 2] cut at `gap` (m): (count, label [K] in 0..count-1)."""
+def cluster_labels(points: np.ndarray, gap: float, ordered: bool = False,
+                   closed: bool = False) -> tuple[int, np.ndarray]:
+    """Single-linkage clusters of points [K, 2] cut at `gap` (m): (count, label [K] in 0..count-1).
+
+    `ordered`: the points are a scan's, in beam order, and only neighbouring beams (and, `closed`, the last and
+    the first of a full turn) are linked, O(K) without a tree; otherwise every pair within the gap (a grid)."""
     count = len(points)
     if count == 0:
         return 0, np.zeros(0, dtype=int)
-    pairs = cKDTree(points).query_pairs(gap, output_type="ndarray")
+    if ordered:
+        first = np.arange(count if closed and count > 2 else count - 1)
+        second = (first + 1) % count
+        near = np.hypot(*(points[second] - points[first]).T) < gap
+        pairs = np.column_stack([first[near], second[near]])
+    else:
+        pairs = cKDTree(points).query_pairs(gap, output_type="ndarray")
     graph = csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
-    # each pair once (i < j): weakly connected components of that graph are the undirected ones
+    # each pair once: weakly connected components of that graph are the undirected ones
     n, labels = connected_components(graph, directed=True, connection="weak")
     return int(n), labels
 
 
 def fit_regions(points: np.ndarray, sensor: np.ndarray, robot: np.ndarray, settings: FitSettings,
-                frame: str = "output", gap: float | None = None) -> list[Fitted]:
+                frame: str = "output", gap: float | None = None, ordered: bool = False,
+                closed: bool = False) -> list[Fitted]:
     """Points [K, 2] (m) seen from `sensor` [2] -> fitted regions, nearest to `robot` [2] first.
 
-    `gap` overrides settings.cluster_gap (a grid joins its neighbouring cells at its resolution)."""
-    n, labels = cluster_labels(points, settings.cluster_gap if gap is None else gap)
-    order = np.argsort(labels, kind="stable")
+    `gap` overrides settings.cluster_gap (a grid joins its neighbouring cells at its resolution); `ordered` and
+    `closed` as in cluster_labels (a scan's points in beam order, a full turn)."""
+    n, labels = cluster_labels(points, settings.cluster_gap if gap is None else gap, ordered, closed)
+    # grouped by cluster, each in order of bearing from the sensor: one sort for all
+    bearing = np.arctan2(points[:, 1] - sensor[1], points[:, 0] - sensor[0])
+    order = np.lexsort((bearing, labels))
     bounds = np.searchsorted(labels[order], np.arange(n + 1))
     fitted: list[Fitted] = []
     for k in range(n):
-        cluster = points[order[bounds[k]:bounds[k + 1]]]
-        if len(cluster) < settings.min_points:
+        members = order[bounds[k]:bounds[k + 1]]
+        if len(members) < settings.min_points:
             continue
-        for piece, axes in _pieces(cluster[_chain_order(cluster, sensor)], settings):
-            kind, region = _fit(piece, axes, sensor, settings, frame)
-            fitted.append(Fitted(kind, region, float(np.min(np.hypot(*(piece - robot).T)))))
+        chain = points[_from_widest_gap(members, bearing[members])]
+        for piece, axes in _pieces(chain, settings):
+            distance = float(np.min(np.hypot(*(piece - robot).T)))
+            fitted.append(_fit(piece, axes, sensor, settings, frame, distance))
     fitted.sort(key=lambda f: f.distance)
     return fitted
 
 
-def _chain_order(points: np.ndarray, sensor: np.ndarray) -> np.ndarray:
-    """Indices that put a cluster's points [K, 2] in order of bearing from the sensor [2], starting after the
-    widest angular gap: a scan's beam order, also where a cluster wraps past the scan's first beam, and an
-    order for a grid's cells."""
-    bearing = np.arctan2(points[:, 1] - sensor[1], points[:, 0] - sensor[0])
-    order = np.argsort(bearing, kind="stable")
-    if len(order) < 3:
-        return order
-    steps = np.diff(bearing[order], append=bearing[order[0]] + 2 * math.pi)
-    return np.roll(order, -(int(np.argmax(steps)) + 1))
+def _from_widest_gap(members: np.ndarray, bearing: np.ndarray) -> np.ndarray:
+    """A cluster's point indices in order of bearing (rad, sorted) from the sensor, started after the widest
+    angular gap: a chain as the beams swept it, also where a cluster wraps past the scan's first beam (a
+    grid's cells get the same order)."""
+    if len(members) < 3:
+        return members
+    steps = np.empty(len(bearing))
+    steps[:-1] = bearing[1:] - bearing[:-1]
+    steps[-1] = bearing[0] + 2 * math.pi - bearing[-1]
+    start = int(np.argmax(steps)) + 1
+    return members if start == len(members) else np.concatenate([members[start:], members[:start]])
 
 
 def _pieces(chain: np.ndarray, settings: FitSettings) -> list[tuple[np.ndarray, Axes]]:
@@ -149,21 +192,15 @@ def _pieces(chain: np.ndarray, settings: FitSettings) -> list[tuple[np.ndarray, 
 @dataclass(frozen=True)
 class Axes:
     """A piece's principal axes: `mean` [2] (m), unit `major` and `normal` [2], the points' coordinates
-    `along` and `across` them [K] (m)."""
+    `along` and `across` them [K] (m), and their spans `length` and `width` (m)."""
 
     mean: np.ndarray
     major: np.ndarray
     normal: np.ndarray
     along: np.ndarray
     across: np.ndarray
-
-    @property
-    def length(self) -> float:
-        return float(np.ptp(self.along))
-
-    @property
-    def width(self) -> float:
-        return float(np.ptp(self.across))
+    length: float
+    width: float
 
 
 def _axes(points: np.ndarray) -> Axes:
@@ -175,38 +212,50 @@ def _axes(points: np.ndarray) -> Axes:
     angle = 0.5 * math.atan2(2.0 * float(x @ y), float(x @ x - y @ y))
     major = np.array([math.cos(angle), math.sin(angle)])
     normal = np.array([-major[1], major[0]])
-    return Axes(mean, major, normal, centred @ major, centred @ normal)
+    along, across = centred @ major, centred @ normal
+    return Axes(mean, major, normal, along, across, float(along.max() - along.min()),
+                float(across.max() - across.min()))
 
 
-def _fit(points: np.ndarray, axes: Axes, sensor: np.ndarray, settings: FitSettings,
-         frame: str) -> tuple[str, Ellipse | Polygon]:
-    """One piece -> (kind, region): a wall segment's box, or a circle, or (a piece left too big) a covering box."""
+def _fit(points: np.ndarray, axes: Axes, sensor: np.ndarray, settings: FitSettings, frame: str,
+         distance: float) -> Fitted:
+    """One piece -> a wall segment's box, or a circle, or (a piece left too big) a covering box."""
     length, width = axes.length, axes.width
     if length <= settings.max_circle_diameter and not (
             width <= settings.wall_thickness and length >= settings.min_box_length):
-        return CIRCLE, _circle(points, axes.mean, sensor, settings, frame)
-    return WALL, _box(axes, sensor, settings, frame)
+        centre, radius = _circle(points, axes.mean, sensor, settings)
+        return Fitted(CIRCLE, centre, (radius, radius), 0.0, distance, frame)
+    middle, size, yaw = _box(axes, sensor, settings)
+    return Fitted(WALL, middle, size, yaw, distance, frame)
 
 
-def _box(axes: Axes, sensor: np.ndarray, settings: FitSettings, frame: str) -> Polygon:
-    """The thin box of a wall segment: its near face through the returns, its thickness away from `sensor`."""
+def _box(axes: Axes, sensor: np.ndarray, settings: FitSettings) -> tuple[tuple[float, float], tuple[float, float],
+                                                                         float]:
+    """The thin box (centre (m), (length, thickness) (m), yaw (rad)) of a wall segment: its near face through the
+    returns, its thickness away from `sensor`."""
     mean, major, normal, along, across = axes.mean, axes.major, axes.normal, axes.along, axes.across
     if float((mean - sensor) @ normal) < 0:  # make `normal` point away from the sensor
         normal, across = -normal, -across
-    thickness = max(float(np.ptp(across)), settings.min_box_thickness)
+    thickness = max(axes.width, settings.min_box_thickness)
     # half the smallest thickness past each end: the surface goes on to half a beam spacing past its last return
-    length = float(np.ptp(along)) + settings.min_box_thickness
+    length = axes.length + settings.min_box_thickness
     middle = mean + major * (along.max() + along.min()) / 2 + normal * (across.min() + thickness / 2)
-    return rotated_box(middle, (length, thickness), math.atan2(major[1], major[0]), frame)
+    return (float(middle[0]), float(middle[1])), (length, thickness), math.atan2(major[1], major[0])
 
 
-def _circle(points: np.ndarray, mean: np.ndarray, sensor: np.ndarray, settings: FitSettings, frame: str) -> Ellipse:
-    """The circle of a small cluster: the Kasa least-squares fit where plausible, its radius covering every return."""
+def _circle(points: np.ndarray, mean: np.ndarray, sensor: np.ndarray,
+            settings: FitSettings) -> tuple[tuple[float, float], float]:
+    """The circle (centre (m), radius (m)) of a small cluster: the Kasa least-squares fit where plausible, its
+    radius covering every return."""
     centre = mean
     if len(points) >= 3:
-        local = points - mean  # centred: a well-conditioned least-squares problem
+        local = points - mean  # centred: well-conditioned normal equations
         design = np.column_stack([2 * local, np.ones(len(local))])
-        solution, *_ = np.linalg.lstsq(design, np.einsum("ij,ij->i", local, local), rcond=None)
+        with np.errstate(all="ignore"):
+            try:
+                solution = np.linalg.solve(design.T @ design, design.T @ np.einsum("ij,ij->i", local, local))
+            except np.linalg.LinAlgError:  # the returns on a line: no circle through them
+                solution = np.full(3, np.nan)
         fitted = mean + solution[:2]
         radius_sq = solution[2] + solution[:2] @ solution[:2]
         # plausible: a real radius no larger than the cluster may be, the centre behind the returns
@@ -214,4 +263,4 @@ def _circle(points: np.ndarray, mean: np.ndarray, sensor: np.ndarray, settings: 
                 and float((fitted - mean) @ (mean - sensor)) >= 0):
             centre = fitted
     radius = max(float(np.max(np.hypot(*(points - centre).T))), settings.min_radius)
-    return Ellipse((float(centre[0]), float(centre[1])), (radius, radius), 0.0, frame)
+    return (float(centre[0]), float(centre[1])), radius

@@ -63,6 +63,11 @@ class ScanGeometry:
     range_min: float
     range_max: float
 
+    @property
+    def full_turn(self) -> bool:
+        """The beams sweep a whole turn: the last one neighbours the first."""
+        return abs(self.angle_max - self.angle_min) + 1.5 * abs(self.angle_increment) >= 2 * math.pi
+
     def check(self, beams: int) -> None:
         """InputError with the reason if `beams` ranges cannot be placed with this geometry."""
         if beams > MAX_BEAMS:

@@ -12,7 +12,6 @@ max_polygons), so the regions that matter first are the ones it gets.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -79,7 +78,8 @@ class Perception:
         """The regions of a scan taken at `stamp` (s) with the robot (base_link) at `robot` in odom."""
         sensor = robot.compose(self.settings.laser_offset)
         points = scan_points(ranges, geometry, sensor)
-        fitted = fit_regions(points.points, points.sensor, robot.position, self.settings.fit, self.settings.frame)
+        fitted = fit_regions(points.points, points.sensor, robot.position, self.settings.fit, self.settings.frame,
+                             ordered=True, closed=geometry.full_turn)
         return self._track(fitted, stamp, len(points.points), points.not_finite, points.out_of_range)
 
     def from_grid(self, grid: Grid, robot: Pose2D, stamp: float) -> Perceived:
@@ -91,7 +91,7 @@ class Perception:
         fitted = fit_regions(points, robot.position, robot.position, s.fit, s.frame, gap=gap)
         # the points are cell centres: grown by half a cell's diagonal, a region covers its cells whole
         half_cell = grid.resolution * math.sqrt(0.5)
-        fitted = [dataclasses.replace(f, region=f.region.inflated(half_cell)) for f in fitted]
+        fitted = [f.inflated(half_cell) for f in fitted]
         return self._track(fitted, stamp, len(points))
 
     def _track(self, fitted: list[Fitted], stamp: float, points: int, not_finite: int = 0,

@@ -94,7 +94,7 @@ class Tracker:
         matches = self._associate(fitted, stamp, dt)
         seen: list[Track] = []
         for i, item in enumerate(fitted):
-            point = item.region.reference_point
+            point = item.center
             track = matches.get(i)
             if track is None:
                 track = Track(self.next_id, item.kind, item.region, deque(maxlen=self.settings.window))
@@ -105,7 +105,7 @@ class Tracker:
             velocity = self._velocity(track)
             # a static region's pose holds at all times (its stamp is 0, core/problem/shapes.py): no copy
             track.region = item.region.with_motion(velocity, stamp) if velocity != (0.0, 0.0) else item.region
-            track.planes = track.region.half_planes() if isinstance(track.region, Polygon) else None
+            track.planes = item.planes if item.kind != CIRCLE else None
             seen.append(track)
         self.tracks = seen
         self.last_stamp = stamp
@@ -117,7 +117,7 @@ class Tracker:
             return {}
         reach = self.settings.gate + self.settings.max_speed * max(dt, 0.0)
         predicted = np.array([t.predicted(stamp) for t in self.tracks])
-        points = np.array([f.region.reference_point for f in fitted])
+        points = np.array([f.center for f in fitted])
         cost = np.hypot(*(points[:, None, :] - predicted[None, :, :]).transpose(2, 0, 1))
         for j, track in enumerate(self.tracks):
             if track.planes is not None:
