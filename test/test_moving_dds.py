@@ -10,9 +10,11 @@ from __future__ import annotations
 import json
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph import ROOT
 from rosgraph_msgs.msg import Clock
@@ -37,13 +39,16 @@ ROBOT = ROOT / "config" / "mobile_robot.yaml"
 WALKER = (ROOT / "config" / "scenes" / "crossing_walker.yaml").read_text()
 
 
-def _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep: bool, **overrides: float) -> tuple[dict, object]:
-    """The crossing walker, 48 samples (the crossing is over by 10 s), through DDS: (metrics, recorded run)."""
+def _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep: bool, config: Path | None = None,
+                 **overrides: float) -> tuple[dict, object]:
+    """The crossing walker, 48 samples (the crossing is over by 10 s), through DDS, with the scene's config or
+    `config`: (metrics, recorded run)."""
     domain, env, _, _ = ros_graph
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOG_DIR", "PYTHONPATH"):
         monkeypatch.setenv(key, env[key])
     scene = tmp_path / "walker.yaml"
-    scene.write_text(WALKER.replace("steps: 80", "steps: 48"))
+    text = WALKER.replace("steps: 80", "steps: 48")
+    scene.write_text(text if config is None else text.replace("config: mobile_robot.yaml", f"config: {config}"))
     report = run_scene_demo(scene, tmp_path / "out", predict=True, timeout=240.0, lockstep=lockstep,
                             overrides=overrides)
     (metrics,) = report["bags"]
@@ -74,22 +79,34 @@ def test_walker_crossing_in_lockstep_meets_the_walker_and_keeps_clearance_in_the
     assert -1e-3 <= clearance < 1.0, metrics["clearance"]
 
 
-#: real time: the controller samples the robot at its timer's ticks (jitter ~15 ms, states up to 25 ms
-#: old at the plant's 40 Hz), not at the plan's instants, so it also sees the robot between two planned
-#: states, and the plan keeps only those clear: at the robot's 1.2 m/s the chord of one 0.25 s sample
-#: cuts a 0.6 m walker by its sagitta, (1.2 * 0.25)^2 / (8 * 0.6) = 1.9 cm, and a command acts up to
-#: ~50 ms late (0.5 * 2 m/s^2 * 0.05^2 = 2.5 mm for this double integrator). Without a margin the run
-#: gave clearance down to -0.033 (1 cm inside) in 2 of 5 runs on a quiet machine. A 5 cm margin covers
-#: both with room; the bound is then the lockstep test's.
-REAL_TIME_MARGIN = 0.05
+#: the actuator's delay of the real-time walker run, s: the plant acts on each command this long after it arrives
+#: and the controller predicts it (its input_delay)
+ACTUATOR_DELAY = 0.03
 REAL_TIME_CLEARANCE = -1e-3
+
+
+def live_walker_config(tmp_path) -> Path:
+    """config/mobile_robot_live.yaml without its region_margin, with an actuator delay on the plant that the
+    controller's input_delay predicts: clearance held by the prediction and the rows between the samples alone."""
+    data = yaml.safe_load((ROOT / "config" / "mobile_robot_live.yaml").read_text())
+    data["/**/controller"]["ros__parameters"].update(region_margin=0.0, input_delay=ACTUATOR_DELAY)
+    data["/**/plant"]["ros__parameters"].update(input_delay=ACTUATOR_DELAY)
+    path = tmp_path / "mobile_robot_live_delayed.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
 
 
 @pytest.mark.slow
 def test_walker_crossing_in_real_time_keeps_clearance_in_the_recorded_bag(ros_graph, tmp_path, monkeypatch):
-    """The same with the real-time plant and region_margin REAL_TIME_MARGIN: the real walker is never
-    entered (the lockstep test checks the encounter itself)."""
-    metrics, _ = _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep=False, region_margin=REAL_TIME_MARGIN)
+    """The same in real time, with the live config and no region_margin: the controller samples the robot at
+    its timer's ticks (jitter, states up to 25 ms old at the plant's 40 Hz), its command leaves a solve later
+    and acts ACTUATOR_DELAY after it arrives. The plan starts from the state predicted to that instant (the
+    commands in force, core/sample/latency.py), each plan's inputs act their sample_time (command_latency,
+    the late cover) and the regions are avoided between the samples too (sub-step and chord rows): the real
+    walker is never entered. (Before, with the Euler-row config and no prediction of the delay, clearance
+    went to -0.033 in 2 of 5 runs without a 5 cm margin.)"""
+    config = live_walker_config(tmp_path)
+    metrics, _ = _walker_demo(ros_graph, tmp_path, monkeypatch, lockstep=False, config=config)
     figures = {key: metrics.get(key) for key in ("fallbacks", "deadline_overruns", "solve_ms")}
     # every recorded robot state (analyze: clearance.recorded_states, the truth), not only the sampled ones
     figures["min_clearance_obstacles"] = metrics["clearance"]["recorded_states"]["min_clearance_obstacles"]

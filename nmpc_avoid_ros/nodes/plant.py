@@ -11,6 +11,10 @@ Lockstep (`lockstep: true`): the plant publishes x0 once the controller listens,
 command advances exactly one `sample_time`, publishes `/clock` and the new state; a closed loop
 runs as fast as the controller solves and reproduces the offline loop.
 
+`input_delay` (s): the actuator's delay, a command acts that long after it arrives (real time: queued and
+switched at that instant within its period; lockstep: the step integrates the previous command for it,
+then the new one). The controller's own `input_delay` setting predicts it.
+
 `interface: robot` (a model with states x, y, theta and inputs v, omega, e.g. `unicycle`): the
 plant stands for a differential-drive base: it publishes nav_msgs/Odometry on `odom` (pose in
 `odom_frame`, twist in `base_frame`, stamped with the node clock or, in lockstep, the simulated
@@ -32,6 +36,7 @@ from __future__ import annotations
 import importlib
 import math
 import time
+from collections import deque
 from collections.abc import Sequence
 
 import numpy as np
@@ -77,6 +82,9 @@ PLANT_SPECS = [
               ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(0, 10**9)),
     ParamSpec("hold_until_command", True, "real time: keep x0 until the first command arrives (the loop is closed)",
               ParameterType.PARAMETER_BOOL, read_only=True),
+    ParamSpec("input_delay", 0.0, "s a command acts after it arrives (the actuator's delay; the controller's "
+              "input_delay predicts it); lockstep: below sample_time, with integration continuous",
+              ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.0, 10.0)),
     ParamSpec("process_noise_std", 0.0, "std of Gaussian noise added to the state per step (state units)",
               ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.0, 1e3)),
     ParamSpec("noise_seed", 0, "seed of the process noise", ParameterType.PARAMETER_INTEGER, read_only=True),
@@ -137,6 +145,13 @@ class PlantNode(Node):
             raise ConfigError("integration euler/rk4 steps by sample_time: use it with lockstep: true")
         self.sim = ContinuousPlant(self.model) if integration == "continuous" else \
             DiscretePlant(self.model, self.sample_time, integration)
+        self.input_delay = float(values["input_delay"])
+        if self.lockstep and self.input_delay > 0 and (integration != "continuous"
+                                                        or self.input_delay >= self.sample_time):
+            raise ConfigError(f"input_delay {self.input_delay:g} s in lockstep needs integration continuous and a "
+                              f"delay below sample_time ({self.sample_time:g} s)")
+        #: real time, input_delay > 0: commands arrived and not acting yet, as (monotonic s they act, u [m])
+        self.pending: deque[tuple[float, np.ndarray]] = deque()
         self.wait_for_subscribers = int(values["wait_for_subscribers"])
         self.max_steps = int(values["max_steps"])
         self.holding = bool(values["hold_until_command"])
@@ -237,34 +252,47 @@ class PlantNode(Node):
         self.pub_clock.publish(Clock(clock=Time(nanoseconds=self.sim_time_ns).to_msg()))
 
     def on_command(self, msg: Float64MultiArray | Twist | TwistStamped) -> None:
-        previous = self.u
         try:
-            self.u = self.robot_map.inputs(self.x, twist_to_command(msg)) if self.robot else \
+            u = self.robot_map.inputs(self.x, twist_to_command(msg)) if self.robot else \
                 array_to_vector(msg, self.model.m, "command")
         except InputError as exc:
             self.rejected += 1
             self.get_logger().warning(f"rejected command: {exc}", throttle_duration_sec=2.0)
             return
         if not self.lockstep:
-            if self.holding:  # held so far: the plant moves from now on
-                self.period_done = min(time.monotonic() - self.period_started, self.period)
+            if self.input_delay > 0:
+                self.pending.append((time.monotonic() + self.input_delay, u))
             else:
-                self.advance_to_now(previous)  # the period so far under the command that was in force
-        self.holding = False
-        if self.lockstep:
-            if self.max_steps and self.steps >= self.max_steps:
-                self.get_logger().info(f"max_steps {self.max_steps} reached: holding", once=True)
-                return
-            self.advance(self.sample_time)
-            self.sim_time_ns += round(self.sample_time * 1e9)
-            self.publish_clock()
-            self.publish_state()
+                self.act(u, time.monotonic())
+            return
+        previous, self.u, self.holding = self.u, u, False
+        if self.max_steps and self.steps >= self.max_steps:
+            self.get_logger().info(f"max_steps {self.max_steps} reached: holding", once=True)
+            return
+        if self.input_delay > 0:  # the previous command acts on for the actuator's delay
+            self.x = self.sim.advance(self.x, previous, self.input_delay)
+        self.advance(self.sample_time - self.input_delay)
+        self.sim_time_ns += round(self.sample_time * 1e9)
+        self.publish_clock()
+        self.publish_state()
+
+    def act(self, u: np.ndarray, at: float) -> None:
+        """Real time: u [m] acts from the monotonic instant `at` (in the current period): the period up to it is
+        integrated under the command in force."""
+        if self.holding:  # held so far: the plant moves from `at` on
+            self.period_done = min(max(at - self.period_started, 0.0), self.period)
+        else:
+            self.advance_to(at, self.u)
+        self.u, self.holding = u, False
 
     def on_timer(self) -> None:
         now = time.monotonic()
         # a period lasts exactly 1/publish_rate (so a bag replays exactly), unless the timer fired more than half a
         # period off (a stalled process, then a burst of missed ticks): the plant does not pause, it moved for the
         # wall time that passed (a 350 ms stall under load had it stand still, then jump, the loop predicting neither)
+        while self.pending and self.pending[0][0] <= now:  # delayed commands acting in this period, at their instant
+            at, u = self.pending.popleft()
+            self.act(u, at)
         span = self.span(now - self.period_started)
         if not self.holding and span > self.period_done:
             self.advance(span - self.period_done)
@@ -276,10 +304,10 @@ class PlantNode(Node):
         unless that is more than half a period off (then the wall time)."""
         return self.period if abs(elapsed - self.period) <= self.period / 2 else elapsed
 
-    def advance_to_now(self, u: np.ndarray) -> None:
-        """Integrate the current period up to now (at most its nominal end) under u [m], without noise or a step
-        count."""
-        elapsed = time.monotonic() - self.period_started
+    def advance_to(self, at: float, u: np.ndarray) -> None:
+        """Integrate the current period up to the monotonic instant `at` (at most its nominal end) under u [m],
+        without noise or a step count."""
+        elapsed = at - self.period_started
         upto = min(elapsed, self.span(elapsed))
         if upto > self.period_done:
             self.x = self.sim.advance(self.x, u, upto - self.period_done)
