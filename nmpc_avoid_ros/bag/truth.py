@@ -11,8 +11,11 @@ Three views of the same run's clearance, named for what they look at (`clearance
 
 g is the controller's measure (keep-in: the expression's value, e.g. |x1 x2| - 2; a region: 1 -
 normalised r^2 for an ellipse); `min_obstacle_distance` is the Euclidean clearance in the plane's
-units (bag/distance.py; metres for a robot). The state box is checked on the recorded states, the
-input box on the recorded commands (`command`, or `cmd_vel` on the robot interface).
+units (bag/distance.py; metres for a robot); with a footprint (settings.body_radius > 0) each view also
+has `min_body_distance`, that distance less the body's radius: the clearance of the body, not of its
+centre (exact for a disc, conservative for a polygon approximated by its circumscribed disc). The state
+box is checked on the recorded states, the input box on the recorded commands (`command`, or `cmd_vel`
+on the robot interface).
 """
 
 from __future__ import annotations
@@ -118,6 +121,12 @@ def bag_metrics(bag: Bag, run: RecordedRun, settings: ControllerSettings) -> dic
                 else None
     metrics["clearance"] = {"units": _units(run, settings, model), "recorded_states": truth, "at_samples": at_samples,
                             "resimulated_between_samples": between}
+    body = settings.body_radius
+    if body > 0:  # a robot with a body (footprint): its clearance is the reference point's less the body's radius
+        metrics["clearance"]["body_radius"] = body
+        for view in (truth, at_samples, between):
+            if view is not None and view.get("min_obstacle_distance") is not None:
+                view["min_body_distance"] = view["min_obstacle_distance"] - body
     metrics["state_box"] = None if states is None else {
         "source": states.topic, "states": len(states.x),
         **box_excursion(states.x, settings.state_min, settings.state_max, model.state_names,

@@ -15,6 +15,7 @@ so that a typo never silently falls back to a default.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -166,6 +167,15 @@ class ControllerSettings:
              "edges moved out): room for what the prediction does not see, the motion between samples and the "
              "loop's latency (docs/design.md, 'Clearance margin'); the recorded clearance is the real regions'",
         runtime=True, low=0.0)
+    footprint_radius: float = setting(
+        0.0, "the robot's body, a disc of this radius (m) about the point the plane tracks (base_link): obstacles "
+             "are planned around grown by body_radius, the larger of this and footprint's, on top of region_margin, "
+             "so the plan keeps the body clear; analyze reports min_body_distance, the obstacle distance minus it",
+        runtime=True, low=0.0)
+    footprint: tuple[float, ...] = setting(
+        (), "the body as a polygon x1, y1, x2, y2, ... (m, base_link; at least 3 corners), approximated by its "
+            "circumscribed disc about base_link (body_radius; exact for a round robot, generous for a long one); "
+            "empty: footprint_radius alone", runtime=True)
     input_delay: float = setting(
         0.0, "s from the moment a command reaches the plant to the moment it acts (the actuator's own delay; "
              "the node adds the DDS delivery, transport_delay). Each step predicts the measured state forward, "
@@ -229,10 +239,26 @@ class ControllerSettings:
         if any(k >= self.max_ellipses for k in self.ellipse_tiers):
             raise ConfigError(f"ellipse_tiers must each be below max_ellipses = {self.max_ellipses} (a tier is a "
                               f"smaller copy of the NLP), got {list(self.ellipse_tiers)}")
+        if self.footprint and (len(self.footprint) % 2 or len(self.footprint) < 6):
+            raise ConfigError(f"footprint must be empty or x, y pairs of at least 3 corners, got "
+                              f"{len(self.footprint)} values")
         for name in ("plane", "output_plane"):
             plane = getattr(self, name)
             if plane[0] == plane[1]:
                 raise ConfigError(f"{name} must be two different non-negative indices, got {plane}")
+
+    @property
+    def body_radius(self) -> float:
+        """The body's radius (m): footprint_radius or the footprint polygon's circumscribed radius about base_link,
+        the larger; every obstacle is planned around grown by it."""
+        corners = zip(self.footprint[0::2], self.footprint[1::2], strict=True)
+        return max([self.footprint_radius, *(math.hypot(x, y) for x, y in corners)])
+
+    @property
+    def planning_margin(self) -> float:
+        """How much every obstacle grows before it reaches the slots (plane units): region_margin + body_radius
+        (the mismatch margin, measured at run time, comes on top)."""
+        return self.region_margin + self.body_radius
 
     def replace(self, **changes: Any) -> ControllerSettings:
         """A copy with some fields changed (validated)."""

@@ -182,10 +182,10 @@ def outcome_section(s: Scored) -> dict[str, Any]:
         if blocked_target and bool(err_free[-1] < SETTLING_TOLERANCE):
             cause = "obstacle_covers_target"
         else:
-            # judged with the regions as the controller plans around them (region_margin; the keep-in with
-            # keep_in_margin): a way open only without the margins is no way for this controller
-            planned = [r.inflated(s.settings.region_margin) for r in s.regions] if s.settings.region_margin else \
-                s.regions
+            # judged with the regions as the controller plans around them (region_margin and the body's radius;
+            # the keep-in with keep_in_margin): a way open only without the margins is no way for this controller
+            margin = s.settings.planning_margin
+            planned = [r.inflated(margin) for r in s.regions] if margin else s.regions
             passage = bool(free_ok and s.family.passage(run.x[-1], y[-1], s.y_free, planned, s.settings))
             cause = "local_minimum" if passage else "no_passage"
     return {
