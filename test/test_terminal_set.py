@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.core.loop.closed_loop import max_abs_product, run_closed_loop, settling_step
+from nmpc_avoid_ros.core.nlp import terminal as nlp_terminal
 from nmpc_avoid_ros.core.nlp.stagewise import make_nlp
 from nmpc_avoid_ros.core.nlp.terminal import ShiftedTail, terminal_ingredients, terminal_problem
 from nmpc_avoid_ros.core.problem.intervals import interval_evaluate
@@ -26,14 +27,16 @@ MODEL = make_model("van_der_pol")
 
 
 @pytest.fixture(scope="module")
-def paper_set(tmp_path_factory):
-    settings = SETTINGS.replace(cache_dir=str(tmp_path_factory.mktemp("cache")))
-    return settings, terminal_ingredients(settings, MODEL), terminal_problem(settings, MODEL)
+def paper_set():
+    """The paper's ingredients from the user's cache, as a controller gets them (computed there once, ~20 s)."""
+    return SETTINGS, terminal_ingredients(SETTINGS, MODEL), terminal_problem(SETTINGS, MODEL)
 
 
-def test_computed_within_a_minute_and_cached_on_disk(paper_set):
-    settings, ingredients, _ = paper_set
-    assert ingredients.seconds < 60
+@pytest.mark.slow
+def test_computed_within_a_minute_and_cached_on_disk(tmp_path):
+    settings = SETTINGS.replace(cache_dir=str(tmp_path))
+    ingredients = terminal_ingredients(settings, MODEL)
+    assert ingredients.seconds < 60 and ingredients.cache == "computed"
     files = list((Path(settings.cache_dir) / "terminal").glob("*.json"))
     assert len(files) == 1
     again = TerminalIngredients.from_dict(json.loads(files[0].read_text()))
@@ -158,6 +161,15 @@ ROBOT_SETTINGS = ControllerSettings(model="double_integrator_2d", terminal="set"
 def robot_set(tmp_path_factory):
     settings = ROBOT_SETTINGS.replace(cache_dir=str(tmp_path_factory.mktemp("cache")))
     return settings, terminal_ingredients(settings, ROBOT), terminal_problem(settings, ROBOT)
+
+
+def test_cache_round_trip_of_a_linear_model(robot_set, monkeypatch):
+    settings_, ingredients, _ = robot_set
+    monkeypatch.setattr(nlp_terminal, "_IN_PROCESS", {})  # as a new process: read from the disk cache
+    again = terminal_ingredients(settings_, ROBOT)
+    assert again.cache == "hit"
+    np.testing.assert_array_equal(again.cost_matrix([1.0, 2.0]), ingredients.cost_matrix([1.0, 2.0]))
+    np.testing.assert_array_equal(again.box_rows, ingredients.box_rows)
 
 
 @settings(max_examples=200, deadline=None, derandomize=True)

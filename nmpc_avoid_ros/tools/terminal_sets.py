@@ -33,6 +33,8 @@ X0 = np.array([-5.0, 0.0])
 TARGET = 5.0
 STEPS = 50
 TERMINALS = ("equality", "set")
+#: the y_a whose terminal sets the figure draws
+SHOWN_Y = (-5.9, -5.0, -3.0, 0.0, 3.0, 5.0, 5.9)
 #: the initial y_a of the admissible range's extra starts
 RANGE_STARTS = (-5.9, -3.0, 0.0, 3.0, 5.9)
 
@@ -103,14 +105,17 @@ def draw(ingredients, records: dict, out: Path, x1: np.ndarray, x2: np.ndarray) 
         ax.scatter(xx[feasible], yy[feasible], marker=marker, s=30 if marker == "s" else 12, color=colour,
                    label=f"X_5 ({terminal}): {feasible.mean():.0%} of the grid")
     angle = np.linspace(0, 2 * np.pi, 200)
-    for y in np.linspace(ingredients.y_low, ingredients.y_high, 23):
+    for y, colour in zip(SHOWN_Y, matplotlib.colormaps["viridis"](np.linspace(0, 0.9, len(SHOWN_Y)))):
         p, alpha = ingredients.cost_matrix(y), ingredients.alpha(y)
         w, v = np.linalg.eigh(p)
         ellipse = v @ (np.sqrt(alpha / w)[:, None] * np.vstack([np.cos(angle), np.sin(angle)]))
-        ax.fill(y + ellipse[0], ellipse[1], color="tab:blue", alpha=0.8)
-    ax.plot([], [], color="tab:blue", lw=6, label="terminal sets {V_f <= alpha(y_a)} around (y_a, 0)")
+        ax.fill(y + ellipse[0], ellipse[1], color=colour, alpha=0.25)
+        ax.plot(y + ellipse[0], ellipse[1], color=colour, lw=1.2)
+        ax.plot([y], [0], "+", color=colour)
+    ax.plot([], [], color="tab:blue", lw=1.2, label=f"terminal sets {{V_f <= alpha(y_a)}} around (y_a, 0), y_a = "
+                                                       f"{', '.join(f'{y:g}' for y in SHOWN_Y)}")
     ax.set(xlabel="x1", ylabel="x2", xlim=(-6.3, 6.3), ylim=(-2.2, 2.2), title="van der Pol, Euler Ts = 0.5 s")
-    ax.legend(loc="upper left", fontsize=8)
+    ax.legend(loc="lower left", fontsize=7, framealpha=0.9)
     ax = axes[1]
     ys = np.linspace(ingredients.y_low, ingredients.y_high, 400)
     extents = np.array([np.sqrt(ingredients.alpha(y) * np.diag(np.linalg.inv(ingredients.cost_matrix(y))))

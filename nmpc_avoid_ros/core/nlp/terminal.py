@@ -37,7 +37,7 @@ from ..problem.terminal import (
 from .codegen import cache_dir
 
 #: bump when the computation changes: old cache files are then not read
-CACHE_VERSION = "terminal-3"
+CACHE_VERSION = "terminal-4"
 #: the solver paths that carry `terminal: set`
 TERMINAL_SET_SOLVERS = ("ipopt", "fatrop")
 #: why the others do not: their Gauss-Newton Hessian is the cost's own, and V_f = e'P(y_a)e makes it indefinite

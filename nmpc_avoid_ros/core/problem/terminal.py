@@ -36,6 +36,7 @@ import numpy as np
 from scipy.linalg import solve_discrete_are
 
 from ..errors import ConfigError
+from .annulus import shell_decreases
 from .intervals import interval_evaluate
 from .model import Model
 
@@ -47,8 +48,9 @@ FIT_DEGREE = 24
 #: uniform grid of y_a at which alpha is certified; the fitted alpha's degree (of log alpha)
 CERTIFIED_POINTS = 241
 ALPHA_DEGREE = 40
-#: bisection steps on log alpha per grid point
+#: bisection steps on log alpha per grid point: of the norm-bound certificate, then of the shell around it
 BISECTION_STEPS = 40
+SHELL_STEPS = 6
 #: the fitted alpha stays this factor below every certified value (grid and midpoints)
 ALPHA_SAFETY = 0.98
 
@@ -140,7 +142,7 @@ class TerminalProblem:
         if model.steady_state is None:
             raise ConfigError(f"terminal: set needs the closed-form steady state g_x, g_u of the model; {model.name} "
                               "has none (its steady states are constraints, eq. 8e-8f): use terminal: equality")
-        self.model, self.n, self.m = model, model.n, model.m
+        self.model, self.n, self.m, self.step = model, model.n, model.m, step
         self.q, self.r = np.diag(np.asarray(q, float)), np.diag(np.asarray(r, float))
         self.box = [np.asarray(b, float) for b in (state_min, state_max, input_min, input_max)]
         self.scale = scale
@@ -243,6 +245,18 @@ class TerminalProblem:
         for _ in range(BISECTION_STEPS):
             mid = (lo + hi) / 2
             lo, hi = (mid, hi) if decreases(np.exp(mid)) else (lo, mid)
+        # around the proven set, the shell by branch and bound (core/problem/annulus.py), up to the box limit
+        near = float(np.exp(lo))
+
+        def shell(alpha: float) -> bool:
+            return shell_decreases(self.step, self.q, self.r, p, k, x_s, u_s, near, alpha)
+
+        if shell(alpha_box):
+            return alpha_box
+        lo, hi = np.log(near), np.log(alpha_box)
+        for _ in range(SHELL_STEPS):
+            mid = (lo + hi) / 2
+            lo, hi = (mid, hi) if shell(np.exp(mid)) else (lo, mid)
         return float(np.exp(lo))
 
 
