@@ -150,6 +150,10 @@ def test_fatrop_path_with_the_terminal_set_runs_the_ipopt_loop(paper_set):
 def test_models_without_the_ingredients_are_refused_with_the_reason():
     with pytest.raises(ConfigError, match="closed-form steady state"):
         terminal_problem(SETTINGS.replace(model="unicycle"), make_model("unicycle"))
+    with pytest.raises(ConfigError, match="hard constraints"):
+        terminal_problem(SETTINGS.replace(constraints=("x1 + x2 <= 3",)), MODEL)
+    with pytest.raises(ConfigError, match="input_rate_max"):
+        terminal_problem(SETTINGS.replace(input_rate_max=(4.0,)), MODEL)
 
 
 ROBOT = make_model("double_integrator_2d")

@@ -8,8 +8,8 @@ For each horizon N and each `terminal` (equality, set):
 * from x0 = [-5, 0] the range of artificial outputs y_a that P_N admits (regions off): the smallest and the
   largest y_a, each the optimum of P_N with V_o pulling y_a far out (y_t = -+100) and zero stage weights (a
   local solver: each end is an admissible y_a, the true range can only be wider);
-* X_N on a grid of |x1| <= 6, |x2| <= 2 (regions off): the grid points from which IPOPT finds a feasible plan
-  (from a resting guess: a lower estimate of X_N).
+* X_N on a grid of |x1| <= 6, |x2| <= 2 (regions off) at each horizon: the grid points from which IPOPT finds a
+  feasible plan (from a resting guess: a lower estimate of X_N); the figure draws N = 5.
 Writes terminal_set.json and terminal_set.png (the certified terminal sets over the state plane) to --out.
 """
 
@@ -166,10 +166,18 @@ def main(argv: list[str] | None = None) -> int:
             records["y_a_range"][terminal][horizon] = Feasibility(horizon, terminal).y_a_range(X0)
             print(terminal, horizon, "y_a range", records["y_a_range"][terminal][horizon], flush=True)
     x1, x2 = np.linspace(-6, 6, args.grid[0]), np.linspace(-2, 2, args.grid[1])
-    for terminal in TERMINALS:
-        grid = Feasibility(5, terminal).feasible_grid(x1, x2)
-        records["x_n_grid"][terminal] = grid.astype(int).tolist()
-        print(terminal, "X_5 share of the grid", grid.mean(), flush=True)
+    records["x_n_share"] = {t: {} for t in TERMINALS}
+    records["x_n_missing_with_set"] = {}
+    for horizon in args.horizons:
+        grids = {t: Feasibility(horizon, t).feasible_grid(x1, x2) for t in TERMINALS}
+        for terminal, grid in grids.items():
+            records["x_n_share"][terminal][horizon] = float(grid.mean())
+            if horizon == 5:
+                records["x_n_grid"][terminal] = grid.astype(int).tolist()
+        # grid points the equality solved from and the set did not (a local solver's miss or a real loss)
+        records["x_n_missing_with_set"][horizon] = int(np.sum(grids["equality"] & ~grids["set"]))
+        print(f"N = {horizon}: X_N share", {t: records["x_n_share"][t][horizon] for t in TERMINALS},
+              "equality-only points", records["x_n_missing_with_set"][horizon], flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "terminal_set.json").write_text(json.dumps(records, indent=1))
     print("wrote", draw(ingredients, records, args.out, x1, x2))

@@ -48,10 +48,23 @@ log = logging.getLogger(__name__)
 
 
 def terminal_problem(settings: ControllerSettings, model: Model) -> TerminalProblem:
-    """The computation's inputs for these settings (the prediction map the NLP uses)."""
+    """The computation's inputs for these settings (the prediction map the NLP uses); `check_covered` first."""
+    check_covered(settings)
     step = model.discrete(settings.sample_time, settings.discretization, settings.integration_steps)
     return TerminalProblem(model, step, settings.state_weights, settings.input_weights, settings.state_min,
                            settings.state_max, settings.input_min, settings.input_max, settings.steady_state_scale)
+
+
+def check_covered(settings: ControllerSettings) -> None:
+    """ConfigError for what the set's certificate does not cover: hard `constraints` of Z (only its boxes are
+    checked) and input_rate_max (kappa's input may change faster than the limit: the shifted candidate would not
+    be feasible)."""
+    if settings.constraints:
+        raise ConfigError("terminal: set certifies the terminal set inside Z's boxes only; the hard constraints "
+                          f"{list(settings.constraints)} are not covered: use terminal: equality")
+    if settings.input_rate_max:
+        raise ConfigError("terminal: set does not cover input_rate_max (the local controller's input may change "
+                          "faster than the limit): use terminal: equality or no input_rate_max")
 
 
 def cache_key(settings: ControllerSettings, model: Model) -> str:
@@ -71,6 +84,7 @@ def cache_key(settings: ControllerSettings, model: Model) -> str:
 def terminal_ingredients(settings: ControllerSettings, model: Model) -> TerminalIngredients:
     """The cached ingredients for these settings: this process's copy, else the disk cache's, else computed
     (and written there). ConfigError where they cannot be computed (core/problem/terminal.py says why)."""
+    check_covered(settings)
     key = cache_key(settings, model)
     path = cache_dir(settings.cache_dir) / "terminal" / f"{key}.json"
     if path in _IN_PROCESS:
