@@ -1,6 +1,6 @@
 """Terminal ingredients of the paper's general scheme (eq. 7-8, Assumption 3.2-3.4), computed offline.
 
-For a model whose steady state has a closed form (x_a, u_a) = (g_x(y_a), g_u(y_a)) with one output
+For a nonlinear model whose steady state has a closed form (x_a, u_a) = (g_x(y_a), g_u(y_a)) with one output
 (p = 1), over the steady outputs y_a whose steady state lies in lambda Z:
 
 * local controller  kappa(x, y_a) = u_a + K(y_a) (x - x_a), K the discrete LQR gain of the linearisation
@@ -21,8 +21,12 @@ alpha(y_a) is certified at every point of a uniform grid of y_a (`CERTIFIED_POIN
 the Hessian of f_i over the box that contains the ellipsoid and its inputs, bounded by interval arithmetic
 (core/problem/intervals.py), and the margin matrix D = P - A_K' P A_K - Q - K' R K > 0 of the fitted P:
     -e'De + 2 |P^1/2 A_K e| |P^1/2 r| + |P^1/2 r|^2 <= 0   for all V_f(e) <= alpha.
-Between the grid points the fitted alpha is checked at the midpoints with the same certificate (sampled:
-a midpoint's own certified alpha must be at least the fitted one). docs/terminal_set.md says the same.
+Those bounds prove a core; on the shell around it (b) is proven by branch and bound (core/problem/annulus.py),
+up to the largest alpha that (a) allows. Between the grid points the fitted alpha is checked at the midpoints
+with the same certificate (sampled: a midpoint's own certified alpha must be at least the fitted one).
+
+A linear model (`compute_linear_ingredients`), with any number of outputs, has one P and K, no remainder, and
+its set is written as one exact row per finite bound of Z. docs/terminal_set.md says the same.
 """
 
 from __future__ import annotations
