@@ -17,6 +17,7 @@ from nmpc_avoid_ros.core.loop.closed_loop import max_abs_product, run_closed_loo
 from nmpc_avoid_ros.core.nlp import terminal as nlp_terminal
 from nmpc_avoid_ros.core.nlp.stagewise import make_nlp
 from nmpc_avoid_ros.core.nlp.terminal import ShiftedTail, terminal_ingredients, terminal_problem
+from nmpc_avoid_ros.core.problem.annulus import shell_decreases
 from nmpc_avoid_ros.core.problem.intervals import interval_evaluate
 from nmpc_avoid_ros.core.problem.models import make_model
 from nmpc_avoid_ros.core.problem.terminal import TerminalIngredients, local_controller
@@ -60,6 +61,25 @@ def test_symbolic_ingredients_equal_the_numeric_ones(paper_set):
         p, alpha = function(value)
         np.testing.assert_allclose(np.asarray(p), ingredients.cost_matrix(value), rtol=1e-12)
         assert float(alpha) == pytest.approx(ingredients.alpha(value), rel=1e-12)
+
+
+def test_shell_certificate_refuses_a_level_where_a_sampled_state_breaks_the_decrease(paper_set):
+    """At y_a = 5 the decrease fails on V_f = 1300 for some sampled state (measured: from about 1220 on): the
+    branch and bound must not certify that shell, and does certify the level in use."""
+    _, ingredients, problem = paper_set
+    p = ingredients.cost_matrix(5.0)
+    k = problem.gain(5.0, p, ingredients.margin)
+    x_s, u_s = problem.steady_state(5.0)
+    w, v = np.linalg.eigh(p)
+    angles = np.linspace(0, 2 * np.pi, 720)
+    e = v @ (np.vstack([np.cos(angles), np.sin(angles)]) / np.sqrt(w)[:, None]) * np.sqrt(1300.0)
+    u = u_s[:, None] + k @ e
+    after = np.asarray(problem.step.map(angles.size)(x_s[:, None] + e, u)) - x_s[:, None]
+    change = np.einsum("ik,ij,jk->k", after, p, after) - 1300.0 + (e * e).sum(0) + ((u - u_s[:, None]) ** 2).sum(0)
+    assert change.max() > 0
+    inner = ingredients.alpha(5.0) / 2
+    assert not shell_decreases(problem.step, problem.q, problem.r, p, k, x_s, u_s, inner, 1300.0)
+    assert shell_decreases(problem.step, problem.q, problem.r, p, k, x_s, u_s, inner, ingredients.alpha(5.0))
 
 
 def test_interval_bounds_contain_sampled_values():
