@@ -6,12 +6,14 @@ placed is refused with a reason in /diagnostics and the regions published before
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.qos import qos_profile_sensor_data
+from rosgraph import ROOT
 from sensor_msgs.msg import LaserScan
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -115,3 +117,37 @@ def test_scan_and_grid_regions_arrive_as_markers_and_a_bad_scan_is_refused_with_
     assert any(s["level"] == 1 for s in refused)  # WARN while refusing
     assert {k: (m.pose.position.x, m.pose.position.y) for k, m in markers.items() if k[0] == "scan"} == before
     assert "refused: scan: scan angle_increment must be non-zero" in scan_node.output()
+
+
+def test_a_robot_controller_takes_the_scan_regions_in_odom_within_its_slots(ros_graph):
+    """scan node (sized to the unicycle config's 4 ellipses and 2 polygons) -> a unicycle controller on the
+    robot interface: every MarkerArray accepted (odom is its output plane), the regions in its slots."""
+    _, _, start, probe_factory = ros_graph
+    ctrl = start("controller", "--ros-args", "--params-file", str(ROOT / "config" / "unicycle.yaml"),
+                 "-p", "target:=[3.0, 0.0]", "-p", "state_timeout:=30.0")
+    scan_node = start("obstacles", "--ros-args", "-p", "source:=scan", "-p", "max_circles:=4", "-p", "max_walls:=2")
+    probe = probe_factory()
+    node = probe.node
+    verdicts: list[dict[str, str]] = []
+    node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: verdicts.extend(
+        {kv.key: kv.value for kv in s.values} for s in m.status if "obstacles_verdict" in
+        {kv.key for kv in s.values}), STREAM_QOS)
+    odom = node.create_publisher(Odometry, "odom", STREAM_QOS)
+    scans = node.create_publisher(LaserScan, "scan", qos_profile_sensor_data)
+    assert probe.spin_until(lambda: odom.get_subscription_count() >= 2 and scans.get_subscription_count() >= 1,
+                            120.0), ctrl.output()[-3000:] + scan_node.output()[-3000:]
+
+    def regions_in_use() -> bool:
+        # the circle, a corner piece or two, and the two nearest walls: the slots hold them all
+        return any(v.get("obstacles_verdict") == "accepted" and int(v.get("regions", 0)) >= 3 for v in verdicts)
+
+    end = time.monotonic() + 60.0
+    while time.monotonic() < end and not regions_in_use():
+        odom.publish(state_to_odometry([ROBOT.x, ROBOT.y, ROBOT.yaw], [0.0, 0.0], node.get_clock().now().to_msg(),
+                                       "odom", "base_link"))
+        scans.publish(scan_message(node))
+        probe.spin_for(0.1)
+    assert regions_in_use(), ({k: v for k, v in verdicts[-1].items() if "obstacle" in k or k == "regions"},
+                              ctrl.output()[-1500:])
+    assert not any(v.get("obstacles_verdict") == "refused" for v in verdicts), [
+        v.get("obstacles_reason") for v in verdicts if v.get("obstacles_verdict") == "refused"][:3]
