@@ -47,7 +47,8 @@ def test_params_files_and_package_index_are_installed(installed):
     for scene in ("crossing_walker", "head_on", "closing_gap"):
         assert (share / "nmpc_avoid_ros" / "config" / "scenes" / f"{scene}.yaml").is_file()
     for name in ("config/unicycle.yaml", "config/unicycle.rviz", "config/unicycle.foxglove.json",
-                 "launch/demo.launch.py", "launch/robot.launch.py"):
+                 "launch/demo.launch.py", "launch/robot.launch.py", "config/worlds/room.yaml",
+                 "config/worlds/room.pgm", "config/worlds/pillars.pgm"):
         assert (share / "nmpc_avoid_ros" / name).is_file(), name
     assert (share / "nmpc_avoid_ros" / "package.xml").is_file()
     assert (share / "ament_index" / "resource_index" / "packages" / "nmpc_avoid_ros").is_file()

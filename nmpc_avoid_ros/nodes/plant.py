@@ -56,6 +56,7 @@ from ..core.problem.models import make_model
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.parameters import LATCHED_QOS, LATEST_QOS, STREAM_QOS, ParamSpec, declare, finite_vector
 from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command, yaw_quaternion
+from .plant_lidar import LIDAR_SPECS, SimulatedLidar
 from .runner import run_node
 
 INTEGRATIONS = ("continuous", "euler", "rk4")
@@ -104,6 +105,7 @@ PLANT_SPECS = [
               "/tf_static as odom_frame itself: the controller draws its plan in `state` and the regions in "
               "`output`, which are the odometry frame when its plane and output_plane pick the position (the "
               "mobile robot configs); [''] for none", ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
+    *LIDAR_SPECS,
 ]
 
 
@@ -181,6 +183,10 @@ class PlantNode(Node):
                 self.pub_odom = self.create_publisher(Odometry, "odom", STREAM_QOS)
         if self.heading is not None and values["publish_tf"]:
             self.create_tf_publishers([] if self.robot else [f for f in values["view_frames"] or [] if f])
+        #: the world's map and the simulated lidar (nodes/plant_lidar.py), with a `world`
+        self.lidar = SimulatedLidar(self, values) if values["world"] else None
+        if values["walkers"] and self.lidar is None:
+            raise ConfigError("walkers are seen by the lidar of a world: set world too")
         if self.lockstep:
             self.pub_clock = self.create_publisher(Clock, "/clock", STREAM_QOS)
             # publish x0 once the controller's subscription is matched (then exactly once per command)
