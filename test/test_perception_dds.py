@@ -117,6 +117,13 @@ def test_scan_and_grid_regions_arrive_as_markers_and_a_bad_scan_is_refused_with_
     assert any(s["level"] == 1 for s in refused)  # WARN while refusing
     assert {k: (m.pose.position.x, m.pose.position.y) for k, m in markers.items() if k[0] == "scan"} == before
     assert "refused: scan: scan angle_increment must be non-zero" in scan_node.output()
+    # scans without odometry for longer than max_odom_age (0.5 s): the robot's pose then is not known
+    refusals = len(refused)
+    end = time.monotonic() + 5.0
+    while time.monotonic() < end and not any("max_odom_age" in s["last_refusal"] for s in statuses[refusals:]):
+        scans.publish(scan_message(node))
+        probe.spin_for(0.1)
+    assert any("max_odom_age" in s["last_refusal"] for s in statuses[refusals:]), statuses[-1:]
 
 
 def test_a_robot_controller_takes_the_scan_regions_in_odom_within_its_slots(ros_graph):

@@ -99,6 +99,36 @@ def test_a_stamp_going_back_restarts_the_tracks():
     assert not any(r.moving for _, r in seen.regions)  # no velocity from a replayed (older) scan
 
 
+@pytest.mark.parametrize(("speed", "yaw_rate"), [(1.0, 0.0), (0.8, 0.5), (0.5, -2.0), (0.0, 1.0)])
+def test_a_pose_moves_along_the_exact_arc_of_its_twist(speed, yaw_rate):
+    start, dt = Pose2D(1.0, -2.0, 0.4), 0.7
+    steps, pose = 20000, start  # the unicycle integrated in small Euler steps
+    h = dt / steps
+    for _ in range(steps):
+        pose = Pose2D(pose.x + speed * math.cos(pose.yaw) * h, pose.y + speed * math.sin(pose.yaw) * h,
+                      pose.yaw + yaw_rate * h)
+    moved = start.moved(speed, yaw_rate, dt)
+    assert (moved.x, moved.y, moved.yaw) == pytest.approx((pose.x, pose.y, pose.yaw), abs=1e-4)
+    back = moved.moved(speed, yaw_rate, -dt)
+    assert (back.x, back.y, back.yaw) == pytest.approx((start.x, start.y, start.yaw), abs=1e-12)
+
+
+def test_a_full_turn_closes_the_chain_and_neighbouring_beams_link():
+    # a ring of returns around the sensor (a round room, 2 m): one cluster across the first and last beam
+    points = 2.0 * np.column_stack([np.cos(ANGLES), np.sin(ANGLES)])
+    assert cluster_labels(points, 0.25, ordered=True, closed=True)[0] == 1
+    # not closed (a scan of less than a turn): linked only along the beams, split where the beams end
+    assert cluster_labels(points, 0.25, ordered=True, closed=False)[0] == 1
+    assert cluster_labels(points[::-1][:400], 0.25, ordered=True)[0] == 1
+    gap = np.delete(points, range(100, 110), axis=0)  # ten beams without a return: still one object (0.17 m)
+    assert cluster_labels(gap, 0.25, ordered=True, closed=True)[0] == 1
+    far = np.delete(points, range(100, 130), axis=0)  # thirty (0.52 m): the ring opens, still one chain
+    assert cluster_labels(far, 0.25, ordered=True, closed=True)[0] == 1
+    two = np.delete(points, [*range(100, 130), *range(400, 430)], axis=0)  # two gaps: two arcs
+    assert cluster_labels(two, 0.25, ordered=True, closed=True)[0] == 2
+    assert cluster_labels(two, 0.25, ordered=True, closed=False)[0] == 3  # the seam at the first beam too
+
+
 def test_nan_and_infinite_ranges_are_dropped_and_counted():
     robot = Pose2D(-1.0, -0.5, 0.3)
     ranges = scan_of(robot)

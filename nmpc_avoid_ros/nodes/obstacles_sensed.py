@@ -77,6 +77,9 @@ SENSED_SPECS = [
     ParamSpec("occupied_threshold", 65, "grid: a cell at least this occupied (percent) is an obstacle", I,
               read_only=True, int_range=(1, 100)),
     ParamSpec("grid_rate", 2.0, "grid: refits per second at most, Hz", D, read_only=True, float_range=(0.01, 100.0)),
+    ParamSpec("max_odom_age", 0.5, "a scan further than this (s) from the last odometry is refused; within it the "
+              "pose is moved to the scan's stamp with the odometry's twist", D, read_only=True,
+              float_range=(0.0, 60.0)),
     ParamSpec("lifetime", 1.0, "marker lifetime, s (0: forever): a stopped node's regions expire", D,
               read_only=True, float_range=(0.0, 3600.0)),
 ]
@@ -105,7 +108,9 @@ class SensedObstacles:
         self.odom_frame, self.base_frame, self.laser_frame = v["odom_frame"], v["base_frame"], v["laser_frame"]
         self.grid_frames = (v["odom_frame"], v["map_frame"])
         self.lifetime = float(v["lifetime"])
+        self.max_odom_age = float(v["max_odom_age"])
         self.pose: Pose2D | None = None
+        self.odometry: tuple[float, float, float] = (0.0, 0.0, 0.0)  # stamp (s), speed (m/s), yaw rate (rad/s)
         self.grid: Grid | None = None
         self.fitted_at: tuple[Grid, Pose2D] | None = None  # the grid and pose of the last grid fit
         self.published_ids: set[int] = set()
@@ -127,7 +132,9 @@ class SensedObstacles:
 
     def on_odom(self, msg: Odometry) -> None:
         try:
-            self.pose = odometry_pose(msg, self.odom_frame, self.base_frame)
+            self.pose, stamp, speed, yaw_rate = odometry_pose(msg, self.odom_frame, self.base_frame)
+            # an unstamped odometry (stamp 0) holds when it arrives
+            self.odometry = (stamp if stamp > 0 else self.node.get_clock().now().nanoseconds * 1e-9, speed, yaw_rate)
         except InputError as exc:
             self.refuse(f"odometry: {exc}")
 
@@ -138,7 +145,8 @@ class SensedObstacles:
             return
         try:
             check_scan_frame(msg, self.laser_frame)
-            seen = self.perception.from_scan(scan_ranges(msg), scan_geometry(msg), self.pose, self.stamp_of(msg))
+            stamp = self.stamp_of(msg)
+            seen = self.perception.from_scan(scan_ranges(msg), scan_geometry(msg), self.pose_at(stamp), stamp)
         except InputError as exc:
             self.refuse(f"scan: {exc}")
             return
@@ -166,6 +174,15 @@ class SensedObstacles:
         now = self.node.get_clock().now()
         self.publish(self.perception.from_grid(grid, pose, now.nanoseconds * 1e-9), now.to_msg())
         self.fitted_at = (grid, pose)
+
+    def pose_at(self, stamp: float) -> Pose2D:
+        """The robot's pose at `stamp` (s): the last odometry's moved by its twist; InputError if too far apart."""
+        odom_stamp, speed, yaw_rate = self.odometry
+        dt = stamp - odom_stamp
+        if abs(dt) > self.max_odom_age:
+            raise InputError(f"the scan is {dt:+.3f} s from the last odometry, more than max_odom_age "
+                             f"{self.max_odom_age:g} s: the robot's pose then is not known")
+        return self.pose.moved(speed, yaw_rate, dt)
 
     def stamp_of(self, msg: LaserScan) -> float:
         """The scan's stamp (s); a zero stamp (a driver that sets none): the node clock's now."""

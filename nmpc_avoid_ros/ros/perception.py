@@ -9,6 +9,7 @@ a grid must be in odom or in the map frame the node is told coincides with it. M
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -22,6 +23,7 @@ from ..core.errors import InputError
 from ..core.perception.grid import Grid
 from ..core.perception.scan import Pose2D, ScanGeometry
 from ..core.problem.shapes import Ellipse, Polygon
+from .conversions import stamp_to_seconds
 from .markers import delete_marker, region_marker
 from .robot import odometry_to_state, yaw_of
 
@@ -51,10 +53,15 @@ def check_scan_frame(msg: LaserScan, laser_frame: str) -> None:
                          f"here: the laser is placed by laser_offset from the base frame)")
 
 
-def odometry_pose(msg: Odometry, odom_frame: str, base_frame: str) -> Pose2D:
-    """base_link in odom from an Odometry; InputError with the reason (wrong frames, NaN, a zero quaternion)."""
+def odometry_pose(msg: Odometry, odom_frame: str, base_frame: str) -> tuple[Pose2D, float, float, float]:
+    """(base_link in odom, stamp (s), forward speed (m/s), yaw rate (rad/s)) of an Odometry; InputError with the
+    reason (wrong frames, NaN, a zero quaternion)."""
     x, y, yaw = odometry_to_state(msg, odom_frame, base_frame)
-    return Pose2D(float(x), float(y), float(yaw))
+    twist = msg.twist.twist
+    speed, yaw_rate = float(twist.linear.x), float(twist.angular.z)
+    if not (math.isfinite(speed) and math.isfinite(yaw_rate)):
+        raise InputError(f"odometry twist must be finite, got linear.x {speed}, angular.z {yaw_rate}")
+    return Pose2D(float(x), float(y), float(yaw)), stamp_to_seconds(msg.header.stamp), speed, yaw_rate
 
 
 def occupancy_grid(msg: OccupancyGrid, frames: Iterable[str]) -> Grid:

@@ -52,6 +52,16 @@ class Pose2D:
     def position(self) -> np.ndarray:
         return np.array([self.x, self.y])
 
+    def moved(self, speed: float, yaw_rate: float, dt: float) -> Pose2D:
+        """The pose after `dt` s (negative: before) at `speed` (m/s, forward) and `yaw_rate` (rad/s), both
+        constant: the exact arc, so that a scan is placed where the robot was when it was taken."""
+        turn = yaw_rate * dt
+        if abs(turn) < 1e-9:
+            step, heading = speed * dt, self.yaw
+        else:  # the chord of the arc, along the mean heading
+            step, heading = 2.0 * speed / yaw_rate * math.sin(turn / 2.0), self.yaw + turn / 2.0
+        return Pose2D(self.x + step * math.cos(heading), self.y + step * math.sin(heading), self.yaw + turn)
+
 
 @dataclass(frozen=True)
 class ScanGeometry:
