@@ -24,13 +24,16 @@ from rosgraph import ROOT
 from nmpc_avoid_ros.cli import COMMANDS
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.nodes.controller import NODE_SPECS
+from nmpc_avoid_ros.nodes.obstacles import OBSTACLE_SPECS
+from nmpc_avoid_ros.nodes.obstacles_sensed import SENSED_SPECS
 from nmpc_avoid_ros.nodes.plant import PLANT_SPECS
 from nmpc_avoid_ros.nodes.recorder import RECORDER_SPECS
 from nmpc_avoid_ros.ros.parameters import settings_specs
 
 PACKAGE = "nmpc_avoid_ros"
 DECLARED = {"controller": {s.name for s in settings_specs() + NODE_SPECS}, "plant": {s.name for s in PLANT_SPECS},
-            "recorder": {s.name for s in RECORDER_SPECS}}
+            "recorder": {s.name for s in RECORDER_SPECS},
+            "obstacles": {s.name for s in OBSTACLE_SPECS + SENSED_SPECS}}
 STAND_INS = {
     "launch": ["LaunchDescription"],
     "launch.actions": ["DeclareLaunchArgument"],
@@ -41,7 +44,8 @@ STAND_INS = {
     "launch_ros.substitutions": ["FindPackageShare"],
 }
 EXPECTED_ARGUMENTS = {"demo.launch.py": {"config", "mu", "record", "namespace"},
-                      "robot.launch.py": {"config", "namespace"}}
+                      "robot.launch.py": {"config", "namespace"},
+                      "world.launch.py": {"config", "world", "walkers", "namespace"}}
 
 
 class Recorded:

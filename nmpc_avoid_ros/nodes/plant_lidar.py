@@ -24,7 +24,7 @@ from sensor_msgs.msg import LaserScan
 
 from ..core.errors import ConfigError
 from ..core.loop.scene import load_scene
-from ..core.loop.world import load_world
+from ..core.loop.world import find_world, load_world
 from ..core.perception.raycast import cast
 from ..core.perception.scan import Pose2D
 from ..core.problem.shapes import Ellipse
@@ -58,7 +58,7 @@ class SimulatedLidar:
             raise ConfigError(f"world: the model {node.model.name!r} is not a planar robot (no x, y, yaw to place "
                               "a lidar)")
         self.world = load_world(values["world"])
-        self.walkers = load_scene(values["walkers"]) if values["walkers"] else None
+        self.walkers = load_scene(find_world(values["walkers"])) if values["walkers"] else None
         beams, fov = int(values["lidar_beams"]), float(values["lidar_fov"])
         self.angle_min = -fov / 2
         self.angle_increment = fov / beams if fov >= 2 * math.pi - 1e-9 else fov / max(beams - 1, 1)

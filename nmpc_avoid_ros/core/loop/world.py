@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from ..config.params_file import default_config_path
 from ..errors import ConfigError
 from ..perception.grid import Grid
 from ..perception.raycast import cast
@@ -92,11 +93,22 @@ def _image_cells(image: np.ndarray, negate: bool, occupied_thresh: float, free_t
     return cells[::-1].copy()
 
 
+def find_world(name: str | Path) -> Path:
+    """A map file: the path as given (absolute, or relative to the working directory), else relative to the
+    shipped config folder (`worlds/room.yaml`: the package's config/worlds/room.yaml, also when installed)."""
+    path = Path(name)
+    if path.exists() or path.is_absolute():
+        return path
+    shipped = default_config_path().parent / path
+    return shipped if shipped.exists() else path
+
+
 def load_world(path: str | Path) -> World:
-    """The map of a map_server YAML file (module doc); ConfigError naming the file and what is wrong."""
+    """The map of a map_server YAML file (`find_world`; module doc); ConfigError naming the file and what is
+    wrong."""
     from PIL import Image, UnidentifiedImageError  # Pillow (matplotlib's dependency) reads PGM, PNG, ...
 
-    path = Path(path)
+    path = find_world(path)
     try:
         data = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:

@@ -1,0 +1,73 @@
+"""launch/world.launch.py through DDS: the unicycle reaches its goal in each shipped world, seeing only what its
+simulated lidar sees (plant with the world's map and walkers -> scan -> `obstacles` node -> regions -> controller).
+
+The nodes are started as `ros2 launch` would start them (test_launch_files.py reads the launch file with
+stand-in launch modules), in real time.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import yaml
+from nav_msgs.msg import Odometry
+from rosgraph import ROOT
+from scipy.spatial import cKDTree
+from std_msgs.msg import Bool
+from test_launch_files import Resolver, load_launch, nodes_of
+
+from nmpc_avoid_ros.core.loop.world import OCCUPIED, load_world
+from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
+
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
+
+GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's target
+REACH_WITHIN = 60.0  # s of real time (the room took 13-15 s here)
+
+
+def wall_distance(world_file: str, xy: np.ndarray) -> float:
+    """The least distance (m) from the robot's positions [K, 2] to an occupied cell's centre."""
+    grid = load_world(world_file).grid
+    rows, cols = np.nonzero(grid.cells >= OCCUPIED)
+    centres = grid.origin.apply(np.column_stack([cols + 0.5, rows + 0.5]) * grid.resolution)
+    return float(cKDTree(centres).query(xy)[0].min())
+
+
+@pytest.mark.parametrize("world, walkers", [("worlds/room.yaml", "worlds/room_walkers.yaml"),
+                                            ("worlds/pillars.yaml", "")], ids=["room", "pillars"])
+def test_the_unicycle_reaches_its_goal_in_each_shipped_world(ros_graph, monkeypatch, world, walkers):
+    _, _, start, probe = ros_graph
+    p = probe()
+    poses: list[tuple[float, float]] = []
+    reached: list[bool] = []
+    p.node.create_subscription(Odometry, "odom", lambda m: poses.append((m.pose.pose.position.x,
+                                                                         m.pose.pose.position.y)), STREAM_QOS)
+    p.node.create_subscription(Bool, "controller/goal_reached", lambda m: reached.append(m.data), LATCHED_QOS)
+    description = load_launch(ROOT / "launch" / "world.launch.py", monkeypatch)
+    resolve = Resolver(description)
+    resolve.defaults.update(world=world, walkers=walkers)
+    procs = []
+    for node in nodes_of(description):
+        kw = node.kwargs
+        args = ["--ros-args", "-r", f"__node:={kw['name']}"]
+        for item in kw["parameters"]:
+            if isinstance(item, dict):
+                for key, value in item.items():
+                    args += ["-p", f"{key}:={yaml.safe_dump(resolve(value), default_flow_style=True).strip()}"]
+            else:
+                args += ["--params-file", resolve(item)]
+        procs.append(start(kw["executable"], *args))
+    begin = time.monotonic()
+    ok = p.spin_until(lambda: any(reached), REACH_WITHIN + 60.0)  # + the nodes' start
+    took = time.monotonic() - begin
+    xy = np.array(poses)
+    outputs = [proc.output()[-2000:] for proc in procs]
+    assert ok, (xy[-1:] if len(xy) else None, outputs)
+    assert np.hypot(xy[-1, 0] - GOAL[0], xy[-1, 1] - GOAL[1]) <= 0.15
+    # the body (footprint_radius 0.2 m) against the walls and pillars: reported, not yet held (see the note in
+    # docs/usage.md, 'A world to drive in')
+    print(f"{world}: goal reached {took:.1f} s after the start, least distance to a wall cell's centre "
+          f"{wall_distance(world, xy):.3f} m (body 0.2 m + half a cell 0.025 m)")
+    assert all(proc.stop() == 0 for proc in procs), outputs
