@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from rclpy.qos import QoSPresetProfiles
+from rclpy.qos import QoSPresetProfiles, qos_profile_sensor_data
 from rosgraph import CONFIG, ROOT
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import MarkerArray
@@ -31,13 +31,19 @@ LAYOUTS = {"unicycle.yaml": ("unicycle.rviz", "unicycle.foxglove.json"),
            # the robot interface's topics and frames: the unicycle's views fit the car-like robot as they are
            "bicycle.yaml": ("unicycle.rviz", "unicycle.foxglove.json"),
            "mobile_robot.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json"),
-           "mobile_robot_live.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json")}
+           "mobile_robot_live.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json"),
+           "unicycle_world.yaml": ("world.rviz", "world.foxglove.json")}
 RVIZ_TYPES = {"rviz_default_plugins/Odometry": "nav_msgs/msg/Odometry",
               "rviz_default_plugins/Path": "nav_msgs/msg/Path",
               "rviz_default_plugins/MarkerArray": "visualization_msgs/msg/MarkerArray",
               "rviz_default_plugins/Marker": "visualization_msgs/msg/Marker",
               "rviz_default_plugins/TwistStamped": "geometry_msgs/msg/TwistStamped",
-              "rviz_default_plugins/SetGoal": "geometry_msgs/msg/PoseStamped"}
+              "rviz_default_plugins/SetGoal": "geometry_msgs/msg/PoseStamped",
+              "rviz_default_plugins/Map": "nav_msgs/msg/OccupancyGrid",
+              "rviz_default_plugins/LaserScan": "sensor_msgs/msg/LaserScan"}
+#: the QoS a view reads a type with where the stream's reliable volatile one does not match: scans are sent
+#: best effort (sensor data), the map once, latched
+VIEW_QOS = {"sensor_msgs/msg/LaserScan": qos_profile_sensor_data, "nav_msgs/msg/OccupancyGrid": LATCHED_QOS}
 #: what the views send to the controller (the goal tool) or show as sent to it: subscribed by it
 SENT_TO_CONTROLLER = {"/goal_pose", "/obstacles"}
 DEFAULT_VIEW_FRAMES = next(s.default for s in PLANT_SPECS if s.name == "view_frames")
@@ -113,7 +119,7 @@ def test_every_robot_config_has_its_views_and_every_view_belongs_to_one():
     assert len({(c["model"], c.get("interface", "array")) for c in mobile}) == 1
 
 
-@pytest.mark.parametrize("config", ["unicycle.yaml", "mobile_robot_live.yaml"])
+@pytest.mark.parametrize("config", ["unicycle.yaml", "mobile_robot_live.yaml", "unicycle_world.yaml"])
 def test_the_views_of_a_robot_config_match_its_running_nodes(ros_graph, config):
     """Lockstep plant and controller of the config, a target and an obstacle: every topic the RViz
     config and the Foxglove layout name exists with the type they expect, published by the nodes (what
@@ -156,7 +162,8 @@ def test_the_views_of_a_robot_config_match_its_running_nodes(ros_graph, config):
     types = graph()
     for topic in set(wanted) - sent - {state_topic}:
         (type_name,) = types[topic]
-        p.node.create_subscription(message_type(type_name), topic, heard[topic].append, STREAM_QOS)
+        p.node.create_subscription(message_type(type_name), topic, heard[topic].append,
+                                   VIEW_QOS.get(type_name, STREAM_QOS))
     # an obstacle beside the straight line, in the frame the config's markers are in; then the target,
     # which starts the loop (the lockstep controller idles without one)
     marker_frame = "odom" if robot else "output"
