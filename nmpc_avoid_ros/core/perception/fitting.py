@@ -59,6 +59,8 @@ class FitSettings:
     min_box_thickness: float = 0.1
     #: splits of a cluster that is neither (a corner, a chain of walls)
     max_split_depth: int = 6
+    #: clusters fitted at most, nearest first: bounds the work of a scan of noise (rain, dust, a broken sensor)
+    max_clusters: int = 200
 
     def __post_init__(self) -> None:
         for name in ("cluster_gap", "max_circle_diameter", "wall_thickness", "min_radius", "min_box_thickness"):
@@ -67,8 +69,8 @@ class FitSettings:
                 raise ConfigError(f"{name} must be a positive number of metres, got {value}")
         if not (math.isfinite(self.min_box_length) and self.min_box_length >= 0):
             raise ConfigError(f"min_box_length must be >= 0 m, got {self.min_box_length}")
-        if self.min_points < 1 or self.max_split_depth < 0:
-            raise ConfigError("min_points must be >= 1 and max_split_depth >= 0")
+        if self.min_points < 1 or self.max_split_depth < 0 or self.max_clusters < 1:
+            raise ConfigError("min_points and max_clusters must be >= 1 and max_split_depth >= 0")
 
 
 @dataclass(frozen=True)
@@ -128,19 +130,28 @@ def cluster_labels(points: np.ndarray, gap: float, ordered: bool = False,
 
 
 def fit_regions(points: np.ndarray, sensor: np.ndarray, robot: np.ndarray, settings: FitSettings,
-                frame: str = "output", gap: float | None = None, ordered: bool = False,
-                closed: bool = False) -> list[Fitted]:
+                frame: str = "output", gap: float | None = None, ordered: bool = False, closed: bool = False,
+                enough: tuple[int, int] | None = None) -> list[Fitted]:
     """Points [K, 2] (m) seen from `sensor` [2] -> fitted regions, nearest to `robot` [2] first.
 
     `gap` overrides settings.cluster_gap (a grid joins its neighbouring cells at its resolution); `ordered` and
-    `closed` as in cluster_labels (a scan's points in beam order, a full turn)."""
+    `closed` as in cluster_labels (a scan's points in beam order, a full turn). `enough` = (circles, walls): the
+    clusters are fitted nearest first and the fitting stops once that many of each are nearer than every cluster
+    left (the result's nearest ones are then exactly those of fitting all). At most settings.max_clusters clusters,
+    the nearest, are fitted: a scan of noise, thousands of one-return clusters, costs what its nearest do."""
     n, labels = cluster_labels(points, settings.cluster_gap if gap is None else gap, ordered, closed)
+    if n == 0:
+        return []
     # grouped by cluster, each in order of bearing from the sensor: one sort for all
     bearing = np.arctan2(points[:, 1] - sensor[1], points[:, 0] - sensor[0])
     order = np.lexsort((bearing, labels))
     bounds = np.searchsorted(labels[order], np.arange(n + 1))
+    reach = np.hypot(*(points[order] - robot).T)
+    nearest = np.minimum.reduceat(reach, bounds[:-1])  # every cluster has a point: no empty segment
     fitted: list[Fitted] = []
-    for k in range(n):
+    for k in np.argsort(nearest, kind="stable")[: settings.max_clusters]:
+        if enough is not None and _have_enough(fitted, enough, float(nearest[k])):
+            break
         members = order[bounds[k]:bounds[k + 1]]
         if len(members) < settings.min_points:
             continue
@@ -150,6 +161,12 @@ def fit_regions(points: np.ndarray, sensor: np.ndarray, robot: np.ndarray, setti
             fitted.append(_fit(piece, axes, sensor, settings, frame, distance))
     fitted.sort(key=lambda f: f.distance)
     return fitted
+
+
+def _have_enough(fitted: list[Fitted], enough: tuple[int, int], beyond: float) -> bool:
+    """True when at least enough = (circles, walls) of `fitted` lie nearer than `beyond` (m)."""
+    circles = sum(1 for f in fitted if f.kind == CIRCLE and f.distance <= beyond)
+    return circles >= enough[0] and len([f for f in fitted if f.kind != CIRCLE and f.distance <= beyond]) >= enough[1]
 
 
 def _from_widest_gap(members: np.ndarray, bearing: np.ndarray) -> np.ndarray:

@@ -79,7 +79,7 @@ class Perception:
         sensor = robot.compose(self.settings.laser_offset)
         points = scan_points(ranges, geometry, sensor)
         fitted = fit_regions(points.points, points.sensor, robot.position, self.settings.fit, self.settings.frame,
-                             ordered=True, closed=geometry.full_turn)
+                             ordered=True, closed=geometry.full_turn, enough=self.enough)
         return self._track(fitted, stamp, len(points.points), points.not_finite, points.out_of_range)
 
     def from_grid(self, grid: Grid, robot: Pose2D, stamp: float) -> Perceived:
@@ -88,7 +88,7 @@ class Perception:
         points = grid.occupied_points(robot.position, s.half_window, s.occupied_threshold)
         # neighbouring cells (diagonals too) are one object, whatever the gap setting
         gap = max(s.fit.cluster_gap, 1.5 * grid.resolution)
-        fitted = fit_regions(points, robot.position, robot.position, s.fit, s.frame, gap=gap)
+        fitted = fit_regions(points, robot.position, robot.position, s.fit, s.frame, gap=gap, enough=self.enough)
         # the points are cell centres: grown by half a cell's diagonal, a region covers its cells whole
         half_cell = grid.resolution * math.sqrt(0.5)
         fitted = [f.inflated(half_cell) for f in fitted]
@@ -100,6 +100,11 @@ class Perception:
         tracks = self.tracker.update(kept, float(stamp))
         self.last = Perceived(tuple((t.id, t.region) for t in tracks), points, not_finite, out_of_range)
         return self.last
+
+    @property
+    def enough(self) -> tuple[int, int]:
+        """(circles, walls) kept: fitting stops once it has them nearer than every cluster left."""
+        return self.settings.max_circles, self.settings.max_walls
 
     def nearest(self, fitted: list[Fitted]) -> list[Fitted]:
         """The nearest max_circles circles and max_walls wall segments of `fitted` (sorted nearest first)."""
