@@ -8,6 +8,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import LaserScan
 
@@ -15,7 +17,7 @@ from nmpc_avoid_ros.core.errors import InputError
 from nmpc_avoid_ros.core.perception.grid import Grid
 from nmpc_avoid_ros.core.perception.scan import Pose2D
 from nmpc_avoid_ros.core.perception.sensing import Perception, PerceptionSettings
-from nmpc_avoid_ros.core.problem.shapes import Ellipse, Polygon
+from nmpc_avoid_ros.core.problem.shapes import Ellipse, Polygon, ellipse_g
 from nmpc_avoid_ros.ros.perception import check_scan_frame, occupancy_grid, scan_geometry, scan_ranges
 
 RESOLUTION = 0.05
@@ -124,3 +126,44 @@ def test_scan_messages_convert_without_a_loop_and_their_frame_is_checked_when_as
     check_scan_frame(msg, "base_scan")
     with pytest.raises(InputError, match="expected 'laser'"):
         check_scan_frame(msg, "laser")
+
+
+@st.composite
+def grids(draw) -> tuple[np.ndarray, int, int]:
+    """Cells (percent, -1 unknown) of a random width x height grid; now and then one cell short or over."""
+    width, height = draw(st.integers(1, 30)), draw(st.integers(1, 30))
+    size = width * height + draw(st.sampled_from([0, 0, 0, 0, -1, 1]))
+    cells = draw(st.lists(st.sampled_from([-1, 0, 0, 0, 30, 70, 100, 100]), min_size=size, max_size=size))
+    return np.asarray(cells, dtype=np.int8), width, height
+
+
+@settings(max_examples=80, deadline=None)
+@given(grid_fields=grids(), resolution=st.floats(0.01, 0.5), yaw=st.floats(-4.0, 4.0), x=st.floats(-3.0, 3.0),
+       y=st.floats(-3.0, 3.0))
+def test_any_grid_is_refused_with_a_reason_or_every_occupied_cell_in_the_window_lies_in_a_region(
+        grid_fields, resolution, yaw, x, y):
+    cells, width, height = grid_fields
+    try:
+        grid = Grid.from_fields(cells, width, height, resolution, Pose2D(-1.0, -1.0, yaw))
+    except InputError as exc:
+        assert len(cells) != width * height and "cells" in str(exc)
+        return
+    settings = PerceptionSettings(max_circles=10**4, max_walls=10**4, half_window=2.0)
+    seen = Perception(settings).from_grid(grid, Pose2D(x, y, 0.0), 0.0)
+    regions = [r for _, r in seen.regions]
+    centres = grid.occupied_points(np.array([x, y]), 2.0, settings.occupied_threshold)
+    assert seen.points == len(centres)
+    # the whole cell, its corners too, lies in a region
+    corners = np.concatenate([centres + Pose2D(0.0, 0.0, yaw).apply(np.array([[dx, dy]]) * resolution)
+                              for dx in (-0.5, 0.5) for dy in (-0.5, 0.5)])
+    if len(corners):
+        deepest = np.max([depths(r, corners) for r in regions], axis=0)
+        assert deepest.min() >= -1e-6, corners[np.argmin(deepest)]
+
+
+def depths(region: Ellipse | Polygon, points: np.ndarray) -> np.ndarray:
+    """g of the region at points [K, 2] (> 0 inside), vectorised: Ellipse.depth and Polygon.depth, many at once."""
+    if isinstance(region, Ellipse):
+        return ellipse_g(points.T, region.slot_values())
+    planes = region.half_planes()
+    return np.min(planes[:, 2] - points @ planes[:, :2].T, axis=1)
