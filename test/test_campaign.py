@@ -25,6 +25,7 @@ from nmpc_avoid_ros.evaluation.campaign.scenarios import (
     unicycle_scenario,
 )
 from nmpc_avoid_ros.evaluation.campaign.scoring import output_distance
+from nmpc_avoid_ros.evaluation.campaign.world import body_clearance, room_world, world_scenario
 
 # seed 2: vdp-0004 (unreachable target -6.4) and vdp-0005 (target 0.8) have no ellipse
 SEED = "2"
@@ -295,3 +296,31 @@ def test_the_bicycle_family_drives_to_goal_poses_and_judges_headings_the_short_w
                  "--no-progress", "--no-plots"]) == 0
     (record,) = read_jsonl(out / JSONL_NAME).values()
     assert record["id"] == "bicycle-0000" and len(record["final_y"]) == 3
+
+
+def test_the_world_family_drives_through_its_lidar_and_judges_the_body_against_the_room(tmp_path):
+    """Opt-in (--world N): random rooms from the seed, start and goal clear of walls and pillars, the pillars
+    off the straight way; each sample's regions come from a scan of the room (evaluation/campaign/world.py); a
+    body placed on a wall or a walker counts as inside."""
+    world = families()["world"]
+    settings = load_settings(world.config)
+    model = make_model(settings.model)
+    for seed in range(20):
+        spec = world_scenario(np.random.default_rng(seed), settings, model)
+        room = room_world(spec)
+        start, goal = np.array(spec["x0"][:2]), np.array(spec["target"])
+        assert not room.occupied(np.vstack([start, goal])).any() and np.linalg.norm(goal - start) >= 3.0
+        assert spec == world_scenario(np.random.default_rng(seed), settings, model)  # reproducible
+    spec = {**world_scenario(np.random.default_rng(3), settings, model), "walkers": [[0.0, 0.0, 0.0, 0.0]]}
+    room = room_world(spec)
+    wall_x = spec["room"][0] / 2 - 0.1  # the right wall's inner face
+    on_wall, on_walker = np.array([[wall_x, 0.0]]), np.array([[0.3, 0.0]])
+    assert body_clearance(spec, room, on_wall, np.zeros(1), 0.2) < -0.1
+    assert body_clearance(spec, room, on_walker, np.zeros(1), 0.2) == pytest.approx(0.3 - 0.25 - 0.2, abs=1e-9)
+    out = tmp_path / "w"
+    assert main(["--out", str(out), "--vdp", "0", "--robot", "0", "--world", "1", "--world-steps", "20",
+                 "--plant", "continuous", "--no-progress"]) == 0
+    (record,) = read_jsonl(out / JSONL_NAME).values()
+    assert record["id"] == "world-0000" and record["perception_ms"]["median"] > 0
+    summary = json.loads((out / "summary.json").read_text())["summary"]["world"]
+    assert summary["scenarios"] == 1 and 0.0 <= summary["collisions"] <= 1.0

@@ -62,7 +62,7 @@ def run_scenario(spec: dict[str, Any], setup: RunSetup) -> dict[str, Any]:
     """Run and score one scenario. Never raises: an unexpected error gives a record with 'crashed'."""
     try:
         family = families()[spec["family"]]
-        return score_scenario(spec, family, tools_for(spec["family"], setup))
+        return (family.score or score_scenario)(spec, family, tools_for(spec["family"], setup))
     except Exception as exc:  # noqa: BLE001 - one bad scenario must not end the campaign
         return {"id": spec["id"], "family": spec["family"], "index": spec["index"],
                 "spec": {k: spec[k] for k in ("x0", "target", "ellipses", "steps", "plant")},
@@ -198,9 +198,10 @@ def build_output(out: Path, specs: Sequence[dict[str, Any]], meta: dict[str, Any
                  ) -> dict[str, Any]:
     """campaign.json (records without traces, summary per family) and plots, from the JSONL."""
     done = read_jsonl(out / JSONL_NAME)
-    records = [classify(done[s["id"]]) for s in specs if s["id"] in done]
-    plotted = [r for r in records if not r.get("crashed")]
-    summary = {fam: summarize([r for r in records if r["family"] == fam])
+    own = {f.key for f in families().values() if f.summarize is not None}  # families scored their own way
+    records = [done[s["id"]] if s["family"] in own else classify(done[s["id"]]) for s in specs if s["id"] in done]
+    plotted = [r for r in records if not r.get("crashed") and r["family"] not in own]
+    summary = {fam: (families()[fam].summarize or summarize)([r for r in records if r["family"] == fam])
                for fam in dict.fromkeys(s["family"] for s in specs)}
     result = {"meta": meta, "definitions": DEFINITIONS, "summary": summary,
               "scenarios": [{k: v for k, v in r.items() if k != "trace"} for r in records]}

@@ -29,6 +29,7 @@ from ...core.loop.metrics import keep_in_values
 from ...core.problem.models import Model, make_model
 from ...core.problem.regions import Ellipse, Region
 from .reachability import planar_passage, vdp_passage
+from .world import score_world, summarize_world, world_scenario
 
 #: an ellipse never contains the initial point: its depth there is below -START_MARGIN
 START_MARGIN = 0.2
@@ -66,6 +67,10 @@ class Family:
     schedule: Callable[[Mapping[str, Any]], RegionSchedule] = static_schedule
     config: Path = Path()
     steps: int = 0
+    #: a family that runs and scores its scenarios its own way (world.py): (spec, family, Tools) -> record, and
+    #: its records -> its summary; None: scoring.score_scenario and summary.summarize
+    score: Callable[..., dict[str, Any]] | None = None
+    summarize: Callable[[Sequence[dict[str, Any]]], dict[str, Any]] | None = None
 
 
 def moving_schedule(spec: Mapping[str, Any]) -> RegionSchedule:
@@ -217,6 +222,9 @@ FAMILIES: tuple[Family, ...] = (
     Family("unicycle", 4, "unicycle.yaml", 0, 200, unicycle_scenario, _planar_way, "unicycle"),
     # not run unless asked for (--bicycle N): the car-like robot (config/bicycle.yaml) to goal poses
     Family("bicycle", 5, "bicycle.yaml", 0, 200, bicycle_scenario, _planar_way, "car-like robot"),
+    # not run unless asked for (--world N): the unicycle in random rooms, seeing only its lidar (world.py)
+    Family("world", 6, "unicycle_world.yaml", 0, 150, world_scenario, _planar_way, "unicycle in a room",
+           score=score_world, summarize=summarize_world),
 )
 
 

@@ -208,6 +208,13 @@ def format_summary(summary: dict[str, Any]) -> str:
         if not s.get("scenarios"):
             lines.append(f"{fam}: no scenarios")
             continue
+        if "reached" in s:  # the world family (world.py)
+            lines.append(f"{fam}: {s['scenarios']} scenarios (crashed {s['crashed']}): reached {pct(s['reached'])}, "
+                         f"collisions {pct(s['collisions'])}, least body clearance {s['min_body_clearance_m']:.3f} m, "
+                         f"perception median {s['perception_ms_median']:.2f} ms (max {s['perception_ms_max']:.1f}), "
+                         f"solve median {s['solve_ms_median']:.1f} ms (max {s['solve_ms_max']:.0f}), fallback "
+                         f"samples {s['fallback_samples']}")
+            continue
         ss = s["stop_short_distance"]
         lines += [
             f"{fam}: {s['scenarios']} scenarios ({s['reachable_targets']} reachable targets, "
