@@ -66,6 +66,9 @@ SENSED_SPECS = [
               read_only=True, int_range=(0, 1000)),
     ParamSpec("cluster_gap", 0.25, "returns closer than this are one object, m", D, read_only=True,
               float_range=(0.01, 10.0)),
+    ParamSpec("breakpoint_angle", 10.0, "scan: neighbouring returns also link up to r sin(d) / sin(b - d) apart "
+              "(b this, deg; d their angle apart; 0: cluster_gap only): a wall seen at a grazing angle stays one",
+              D, read_only=True, float_range=(0.0, 80.0)),
     ParamSpec("wall_thickness", 0.12, "a cluster within this of a line is a wall segment, m", D, read_only=True,
               float_range=(0.001, 10.0)),
     ParamSpec("max_circle_diameter", 1.0, "a cluster at most this long is a circle, m", D, read_only=True,
@@ -98,7 +101,8 @@ class SensedObstacles:
         try:
             settings = PerceptionSettings(
                 fit=FitSettings(cluster_gap=v["cluster_gap"], wall_thickness=v["wall_thickness"],
-                                max_circle_diameter=v["max_circle_diameter"]),
+                                max_circle_diameter=v["max_circle_diameter"],
+                                breakpoint_angle=math.radians(v["breakpoint_angle"])),
                 tracks=TrackSettings(max_speed=v["max_speed"]), max_circles=v["max_circles"],
                 max_walls=v["max_walls"], laser_offset=Pose2D(*offset), half_window=v["half_window"],
                 occupied_threshold=v["occupied_threshold"])
