@@ -189,6 +189,21 @@ def test_a_scan_of_noise_costs_what_its_nearest_clusters_do():
     assert len(seen.regions) == 6 and seen.points == MAX_BEAMS  # the nearest 6 circles, no wall in noise
 
 
+def test_a_wall_seen_at_a_grazing_angle_stays_one_object_with_the_adaptive_breakpoint():
+    """A 1-degree lidar 1 m from a long wall, beams 12 to 90 degrees off it: its returns spread to 0.4 m apart
+    4.7 m along it (78 degrees off the wall's normal; lambda = 10 degrees links up to 80)."""
+    robot = Pose2D(0.0, 0.0, 0.0)
+    angles = np.radians(np.arange(12.0, 91.0, 1.0))
+    ranges = cast(robot, angles, [(-1.0, 1.0, 20.0, 1.0)])  # the wall y = 1, x from -1 to 20
+    geometry = ScanGeometry(float(angles[0]), float(angles[-1]), math.radians(1.0), 0.05, 30.0)
+    points = scan_points(ranges, geometry, robot).points
+    fixed = cluster_labels(points, 0.25, ordered=True, sensor=robot.position, breakpoint_angle=0.0)[0]
+    adaptive = cluster_labels(points, 0.25, ordered=True, sensor=robot.position, breakpoint_angle=math.radians(10))[0]
+    assert fixed >= 3 and adaptive == 1
+    walls = [r for _, r in Perception().from_scan(ranges, geometry, robot, 0.0).regions if isinstance(r, Polygon)]
+    assert len(walls) == 1 and max(x for x, _ in walls[0].vertices) > 4.6
+
+
 def test_clusters_are_single_linkage_at_the_gap():
     points = np.array([[0.0, 0.0], [0.2, 0.0], [0.4, 0.0], [1.0, 0.0], [1.1, 0.05]])
     count, labels = cluster_labels(points, 0.25)
