@@ -103,6 +103,8 @@ def test_scan_and_grid_regions_arrive_as_markers_and_a_bad_scan_is_refused_with_
     assert math.dist((nearest.pose.position.x, nearest.pose.position.y), CIRCLE[:2]) < 0.02
     assert nearest.scale.x == pytest.approx(0.6, abs=0.03) and nearest.header.frame_id == "odom"
     assert sum(m.type == Marker.LINE_STRIP for m in of("scan")) >= 4  # the four walls
+    # the tracker's verdict travels: static regions say so, the controller estimates nothing of its own
+    assert all(m.text == "velocity=0.0,0.0" for m in of("scan") + of("grid"))
     # the grid: a thin box along the wall y = 2 and a circle around the pillar at (1.5, 0)
     (wall,) = [m for m in of("grid") if m.type == Marker.LINE_STRIP]
     ys = [p.y for p in wall.points]

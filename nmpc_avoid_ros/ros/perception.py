@@ -24,7 +24,7 @@ from ..core.perception.grid import Grid
 from ..core.perception.scan import Pose2D, ScanGeometry
 from ..core.problem.shapes import Ellipse, Polygon
 from .conversions import stamp_to_seconds
-from .markers import delete_marker, region_marker
+from .markers import delete_marker, region_marker, velocity_text
 from .robot import odometry_to_state, yaw_of
 
 #: markers of fitted regions: the same fill as the scene's, a wall segment's outline a little thicker
@@ -86,14 +86,17 @@ def occupancy_grid(msg: OccupancyGrid, frames: Iterable[str]) -> Grid:
 
 def tracked_markers(regions: Sequence[tuple[int, Ellipse | Polygon]], gone: Iterable[int], ns: str, stamp: Time,
                     frame_id: str, lifetime: float) -> MarkerArray:
-    """Tracked regions -> a DELETE for each track id in `gone`, then one ADD marker each (ns, id = track id; a
-    moving one with its velocity in `text`); header.frame_id `frame_id` (the regions' plane: odom). The DELETEs
-    first: the controller applies the markers in order, and a new track's ADD before the DELETE of the one it
-    replaces found its slots full ("capacity of 4 ellipses reached": 5-6 refusals a run in the room world)."""
+    """Tracked regions -> a DELETE for each track id in `gone`, then one ADD marker each (ns, id = track id);
+    header.frame_id `frame_id` (the regions' plane: odom). The DELETEs first: the controller applies the markers
+    in order, and a new track's ADD before the DELETE of the one it replaces found its slots full ("capacity of
+    4 ellipses reached": 5-6 refusals a run in the room world). Every marker carries its velocity in `text`, a
+    static one `velocity=0.0,0.0`: the tracker has decided, and the controller must not estimate a motion of its
+    own from the poses (the seen part of a wall slides along it as the robot moves)."""
     markers = [delete_marker(ns, track_id) for track_id in gone]
     for track_id, region in regions:
         marker = region_marker(region, track_id, ns, stamp, lifetime)
         marker.header.frame_id = frame_id
+        marker.text = velocity_text(region.velocity)
         if isinstance(region, Polygon):
             marker.scale.x = WALL_LINE_WIDTH
         markers.append(marker)
