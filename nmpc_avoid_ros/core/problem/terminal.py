@@ -57,6 +57,8 @@ BISECTION_STEPS = 40
 SHELL_STEPS = 6
 #: the fitted alpha stays this factor below every certified value (grid and midpoints)
 ALPHA_SAFETY = 0.98
+#: the fits are evaluated at y_a held within this multiple of the steady range's half-width around its centre
+T_HELD = 1.02
 
 
 @dataclass
@@ -88,7 +90,11 @@ class TerminalIngredients:
     box_rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def _t(self, y):
-        return (y - (self.y_high + self.y_low) / 2) / ((self.y_high - self.y_low) / 2)
+        """y_a scaled to [-1, 1] over [y_low, y_high], held at +-T_HELD beyond: the fits are polynomials of high
+        degree that overflow far outside (a solver's iterate may leave lambda Z for a while; measured: NaN in the
+        NLP's derivatives), and the hold is a kink only where no plan is feasible."""
+        t = (y - (self.y_high + self.y_low) / 2) / ((self.y_high - self.y_low) / 2)
+        return ca.fmin(ca.fmax(t, -T_HELD), T_HELD) if isinstance(t, ca.SX) else float(np.clip(t, -T_HELD, T_HELD))
 
     def cost_matrix(self, y_a: float | np.ndarray) -> np.ndarray:
         """P(y_a) [n, n]."""
