@@ -1,10 +1,12 @@
 """The controller's core: numpy + CasADi only, no ROS (test/test_core_layering.py keeps it so).
 
-Rooms, each importing only the ones above it (problem <- config <- nlp <- sample <- loop):
+Rooms, each importing only the ones above it (problem <- perception <- config <- nlp <- sample <- loop):
 
 * problem/  what is controlled and avoided: the model type (model.py), model files (model_files.py)
   and the names a config can use (models.py), regions and their penalties, motion of moving
   regions, algebraic expressions (parsed, never eval'd).
+* perception/  obstacle regions from what a robot senses: a laser scan or an occupancy grid and the
+  robot's pose -> clusters -> circles and wall boxes -> tracks with velocities (sensing.py runs it).
 * config/   the settings: one declaration per setting (schema.py), ControllerSettings and the
   params-file format (params_file.py).
 * nlp/      the optimisation problem and how it is solved: the multiple-shooting NLP (tracking.py),
