@@ -14,8 +14,9 @@ Each cluster is fitted by its principal axes (of its 2x2 covariance):
   away from the sensor (what lies behind a surface is not seen, and a wall has some);
 - at most `max_circle_diameter` long: a circle. A laser sees only the near side of a round object,
   whose mean lies in front of its centre, so the centre is the algebraic least-squares circle fit
-  (Kasa) of the returns; where that fit is implausible (a flat or noisy arc) the circle around the
-  cluster's mean. Either way the radius covers every return;
+  (Kasa) of the returns; where they do not bend like an arc (a flat face: a box's side) the object is
+  taken as deep as it is wide, its centre half its length behind the face. Either way the radius
+  covers every return;
 - otherwise (a corner, a room's walls seen as one chain): split where the chain of returns, in order
   of bearing from the sensor, bends most (Douglas-Peucker), and fit each piece, down to
   `max_split_depth` levels (then a box covering the piece).
@@ -151,14 +152,15 @@ def cluster_labels(points: np.ndarray, gap: float, ordered: bool = False, closed
 
 def fit_regions(points: np.ndarray, sensor: np.ndarray, robot: np.ndarray, settings: FitSettings,
                 frame: str = "output", gap: float | None = None, ordered: bool = False, closed: bool = False,
-                enough: tuple[int, int] | None = None) -> list[Fitted]:
+                enough: tuple[int, int] | None = None, surface: bool = True) -> list[Fitted]:
     """Points [K, 2] (m) seen from `sensor` [2] -> fitted regions, nearest to `robot` [2] first.
 
     `gap` overrides settings.cluster_gap (a grid joins its neighbouring cells at its resolution); `ordered` and
     `closed` as in cluster_labels (a scan's points in beam order, a full turn). `enough` = (circles, walls): the
     clusters are fitted nearest first and the fitting stops once that many of each are nearer than every cluster
     left (the result's nearest ones are then exactly those of fitting all). At most settings.max_clusters clusters,
-    the nearest, are fitted: a scan of noise, thousands of one-return clusters, costs what its nearest do."""
+    the nearest, are fitted: a scan of noise, thousands of one-return clusters, costs what its nearest do.
+    `surface`: the points are surfaces seen from the sensor (a scan); False: they fill the objects (a grid)."""
     n, labels = cluster_labels(points, settings.cluster_gap if gap is None else gap, ordered, closed, sensor,
                                settings.breakpoint_angle)
     if n == 0:
@@ -179,7 +181,7 @@ def fit_regions(points: np.ndarray, sensor: np.ndarray, robot: np.ndarray, setti
         chain = points[_from_widest_gap(members, bearing[members])]
         for piece, axes in _pieces(chain, settings):
             distance = float(np.min(np.hypot(*(piece - robot).T)))
-            fitted.append(_fit(piece, axes, sensor, settings, frame, distance))
+            fitted.append(_fit(piece, axes, sensor, settings, frame, distance, surface))
     fitted.sort(key=lambda f: f.distance)
     return fitted
 
@@ -256,12 +258,12 @@ def _axes(points: np.ndarray) -> Axes:
 
 
 def _fit(points: np.ndarray, axes: Axes, sensor: np.ndarray, settings: FitSettings, frame: str,
-         distance: float) -> Fitted:
+         distance: float, surface: bool = True) -> Fitted:
     """One piece -> a wall segment's box, or a circle, or (a piece left too big) a covering box."""
     length, width = axes.length, axes.width
     if length <= settings.max_circle_diameter and not (
             width <= settings.wall_thickness and length >= settings.min_box_length):
-        centre, radius = _circle(points, axes.mean, sensor, settings)
+        centre, radius = _circle(points, axes, sensor, settings, surface)
         return Fitted(CIRCLE, centre, (radius, radius), 0.0, distance, frame)
     middle, size, yaw = _box(axes, sensor, settings)
     return Fitted(WALL, middle, size, yaw, distance, frame)
@@ -281,11 +283,18 @@ def _box(axes: Axes, sensor: np.ndarray, settings: FitSettings) -> tuple[tuple[f
     return (float(middle[0]), float(middle[1])), (length, thickness), math.atan2(major[1], major[0])
 
 
-def _circle(points: np.ndarray, mean: np.ndarray, sensor: np.ndarray,
-            settings: FitSettings) -> tuple[tuple[float, float], float]:
-    """The circle (centre (m), radius (m)) of a small cluster: the Kasa least-squares fit where plausible, its
-    radius covering every return."""
-    centre = mean
+def _circle(points: np.ndarray, axes: Axes, sensor: np.ndarray, settings: FitSettings,
+            surface: bool = True) -> tuple[tuple[float, float], float]:
+    """The circle (centre (m), radius (m)) of a small cluster, its radius covering every return: the Kasa
+    least-squares circle where the returns bend like an arc of one (a radius at most the cluster's length: an
+    arc of 60 degrees or more, its centre behind the returns); otherwise (a flat face, a box's side) an object
+    taken as deep as it is wide: the centre half the length behind the face's middle (a square seen face-on:
+    its circumscribed circle). Not `surface` (a grid's cells fill the object): the circle about their mean."""
+    mean, length = axes.mean, axes.length
+    if not surface:
+        return (float(mean[0]), float(mean[1])), max(float(np.max(np.hypot(*(points - mean).T))), settings.min_radius)
+    away = axes.normal if float((mean - sensor) @ axes.normal) >= 0 else -axes.normal
+    centre = mean + away * (length / 2)
     if len(points) >= 3:
         local = points - mean  # centred: well-conditioned normal equations
         design = np.column_stack([2 * local, np.ones(len(local))])
@@ -296,8 +305,7 @@ def _circle(points: np.ndarray, mean: np.ndarray, sensor: np.ndarray,
                 solution = np.full(3, np.nan)
         fitted = mean + solution[:2]
         radius_sq = solution[2] + solution[:2] @ solution[:2]
-        # plausible: a real radius no larger than the cluster may be, the centre behind the returns
-        if (np.all(np.isfinite(solution)) and 0 < radius_sq <= settings.max_circle_diameter ** 2
+        if (np.all(np.isfinite(solution)) and 0 < radius_sq <= max(length, settings.min_radius) ** 2
                 and float((fitted - mean) @ (mean - sensor)) >= 0):
             centre = fitted
     radius = max(float(np.max(np.hypot(*(points - centre).T))), settings.min_radius)

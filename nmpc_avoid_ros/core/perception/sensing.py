@@ -88,7 +88,8 @@ class Perception:
         points = grid.occupied_points(robot.position, s.half_window, s.occupied_threshold)
         # neighbouring cells (diagonals too) are one object, whatever the gap setting
         gap = max(s.fit.cluster_gap, 1.5 * grid.resolution)
-        fitted = fit_regions(points, robot.position, robot.position, s.fit, s.frame, gap=gap, enough=self.enough)
+        fitted = fit_regions(points, robot.position, robot.position, s.fit, s.frame, gap=gap, enough=self.enough,
+                             surface=False)
         # the points are cell centres: grown by half a cell's diagonal, a region covers its cells whole
         half_cell = grid.resolution * math.sqrt(0.5)
         fitted = [f.inflated(half_cell) for f in fitted]
