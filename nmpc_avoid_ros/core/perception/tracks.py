@@ -4,11 +4,12 @@
 Association is a minimum-cost assignment (`scipy.optimize.linear_sum_assignment`) between the tracks and
 the new regions of the same kind: a circle's cost is the distance of the new centre from the track's
 predicted one, a wall segment's how far the new segment's middle lies outside the track's box; gated
-at `gate` + `max_speed` dt:
-a region nobody claims starts a new track with a new id, a track nobody matched ends. A circle's
-velocity is the least-squares slope of its centre over its last `window` observations; below
-`min_speed` it is static. Wall segments are static: the part of a wall a moving robot sees slides
-along it, and that is not motion.
+at `gate` + `max_speed` dt: a region nobody claims starts a new track with a new id, a track nobody
+matched ends. A circle's velocity is the least-squares slope of its centre over its last `window`
+observations, once it has that many; below `min_speed`, or with the centres further than
+`max_residual` from a straight-line motion, it is static: the fit of a static object jitters or slides
+as the robot's view of it changes (docs/design.md, 'Obstacles from sensors'). Wall segments are
+static: the part of a wall a moving robot sees slides along it, and that is not motion.
 """
 
 from __future__ import annotations
@@ -39,7 +40,10 @@ class TrackSettings:
     #: observations the velocity is fitted over (>= 2)
     window: int = 5
     #: slower than this, m/s: static (velocity exactly 0, so the controller packs the region once)
-    min_speed: float = 0.05
+    min_speed: float = 0.1
+    #: the centres may leave the fitted straight-line motion by this much (RMS, m) and still be one moving
+    #: object; more: static (the fit of a static object jumps as the robot's view of it changes)
+    max_residual: float = 0.03
 
     def __post_init__(self) -> None:
         for name in ("gate", "max_speed"):
@@ -47,6 +51,8 @@ class TrackSettings:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
         if self.window < 2 or not (math.isfinite(self.min_speed) and self.min_speed >= 0):
             raise ConfigError("window must be >= 2 and min_speed >= 0")
+        if not (math.isfinite(self.max_residual) and self.max_residual > 0):
+            raise ConfigError(f"max_residual must be positive, got {self.max_residual}")
 
 
 @dataclass
@@ -131,16 +137,19 @@ class Tracker:
 
     def _velocity(self, track: Track) -> tuple[float, float]:
         """Least-squares slope of the reference point over the track's window, m/s (0 for walls and slow ones)."""
-        if track.kind != CIRCLE or len(track.history) < 2:
-            return (0.0, 0.0)
+        if track.kind != CIRCLE or len(track.history) < self.settings.window:
+            return (0.0, 0.0)  # a full window first: a new track's first fits are the least settled
         samples = np.asarray(track.history)
         times = samples[:, 0] - samples[:, 0].mean()
         spread = float(times @ times)
         if spread <= 0.0:
             return (0.0, 0.0)
-        vx, vy = (times @ (samples[:, 1:] - samples[:, 1:].mean(axis=0))) / spread
+        offsets = samples[:, 1:] - samples[:, 1:].mean(axis=0)
+        vx, vy = (times @ offsets) / spread
         speed = math.hypot(vx, vy)
-        if speed < self.settings.min_speed:
+        # a walker moves along a line; a static object's fit jitters or slides as the view changes
+        residual = math.sqrt(float(np.mean(np.sum((offsets - np.outer(times, (vx, vy))) ** 2, axis=1))))
+        if speed < self.settings.min_speed or residual > self.settings.max_residual:
             return (0.0, 0.0)
         if speed > self.settings.max_speed:
             # faster than anything followed: two objects confused, or a jump; start the estimate again
