@@ -56,6 +56,8 @@ class FitSettings:
     min_box_length: float = 0.5
     #: the smallest circle radius (a single return)
     min_radius: float = 0.05
+    #: returns bending less than this across their line (m) are a flat face, not an arc to fit a circle to
+    min_arc_depth: float = 0.015
     #: the thickness of a box whose returns lie on a line
     min_box_thickness: float = 0.1
     #: splits of a cluster that is neither (a corner, a chain of walls)
@@ -68,7 +70,8 @@ class FitSettings:
     breakpoint_angle: float = math.radians(10.0)
 
     def __post_init__(self) -> None:
-        for name in ("cluster_gap", "max_circle_diameter", "wall_thickness", "min_radius", "min_box_thickness"):
+        for name in ("cluster_gap", "max_circle_diameter", "wall_thickness", "min_radius", "min_box_thickness",
+                     "min_arc_depth"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a positive number of metres, got {value}")
@@ -286,10 +289,11 @@ def _box(axes: Axes, sensor: np.ndarray, settings: FitSettings) -> tuple[tuple[f
 def _circle(points: np.ndarray, axes: Axes, sensor: np.ndarray, settings: FitSettings,
             surface: bool = True) -> tuple[tuple[float, float], float]:
     """The circle (centre (m), radius (m)) of a small cluster, its radius covering every return: the Kasa
-    least-squares circle where the returns bend like an arc of one (a radius at most the cluster's length: an
-    arc of 60 degrees or more, its centre behind the returns); otherwise (a flat face, a box's side) an object
-    taken as deep as it is wide: the centre half the length behind the face's middle (a square seen face-on:
-    its circumscribed circle). Not `surface` (a grid's cells fill the object): the circle about their mean."""
+    least-squares circle where the returns bend like an arc of one (the arc at least min_arc_depth deep, the
+    radius at most max_circle_diameter / 2, the centre behind the returns); otherwise (a flat face, a box's
+    side) an object taken as deep as it is wide: the centre half the length behind the face's middle (a
+    square seen face-on: its circumscribed circle). Not `surface` (a grid's cells fill the object): the
+    circle about their mean."""
     mean, length = axes.mean, axes.length
     if not surface:
         return (float(mean[0]), float(mean[1])), max(float(np.max(np.hypot(*(points - mean).T))), settings.min_radius)
@@ -305,8 +309,8 @@ def _circle(points: np.ndarray, axes: Axes, sensor: np.ndarray, settings: FitSet
                 solution = np.full(3, np.nan)
         fitted = mean + solution[:2]
         radius_sq = solution[2] + solution[:2] @ solution[:2]
-        if (np.all(np.isfinite(solution)) and 0 < radius_sq <= max(length, settings.min_radius) ** 2
-                and float((fitted - mean) @ (mean - sensor)) >= 0):
+        if (np.all(np.isfinite(solution)) and 0 < radius_sq <= (settings.max_circle_diameter / 2) ** 2
+                and axes.width >= settings.min_arc_depth and float((fitted - mean) @ (mean - sensor)) >= 0):
             centre = fitted
     radius = max(float(np.max(np.hypot(*(points - centre).T))), settings.min_radius)
     return (float(centre[0]), float(centre[1])), radius
