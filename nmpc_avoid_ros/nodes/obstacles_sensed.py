@@ -7,7 +7,9 @@
 is turned into regions at once (core/perception). `grid` (nav_msgs/OccupancyGrid on `map`, latched and
 volatile publishers alike) with `odom`: the occupied cells within `half_window` of the robot, refitted
 when a new grid arrives or the robot moved by more than `cluster_gap`, at most `grid_rate` times a
-second (between refits the regions are sent again, so that they do not expire). Regions go out on
+second (between refits the regions are sent again, so that they do not expire). A costmap's inflated cells
+count as obstacles where they reach `occupied_threshold`: give the grid without its inflation layer (or
+the threshold of its lethal cost), as the controller grows every region by the robot's body itself. Regions go out on
 `obstacles` as one marker per tracked object (ns = `ns_prefix`, default the source's name; id = track
 id; a moving one carries its velocity), a DELETE for each object no longer seen, each with `lifetime`,
 so the regions of a stopped node expire.
