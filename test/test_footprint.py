@@ -57,9 +57,6 @@ def test_analyze_reports_the_bodys_clearance_the_reference_points_less_its_radiu
         assert entry["min_body_distance"] == pytest.approx(entry["min_obstacle_distance"] - 0.2, abs=1e-12)
 
 
-@pytest.mark.xfail(strict=True, reason="handed to the lead: core/sample/runtime_changes.py set_regions and "
-                   "update_settings (and nodes/controller_goal.py) still grow the regions by region_margin alone; "
-                   "settings.planning_margin there applies the body. Remove this mark with that change.")
 def test_the_controller_plans_around_every_region_grown_by_the_body():
     from nmpc_avoid_ros.core.problem.shapes import Ellipse, rotated_box
     from nmpc_avoid_ros.core.sample.controller import NmpcController

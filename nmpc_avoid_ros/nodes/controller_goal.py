@@ -38,7 +38,7 @@ class GoalKeeping:
         if self._goal_watch is None or self._goal_watch.model is not controller.model:
             self._goal_watch = GoalWatch(controller.model)
         s = controller.settings
-        margin = s.region_margin + controller.mismatch_margin
+        margin = s.planning_margin + controller.mismatch_margin
         measured = self.state if result.measured_state is None else result.measured_state
         if options.goal_tolerance <= 0:  # off: nothing watched, nothing said
             self._goal_watch.reset()

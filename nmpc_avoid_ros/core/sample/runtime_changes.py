@@ -30,10 +30,11 @@ class RuntimeChanges:
         return self._regions
 
     def set_regions(self, regions: Sequence[Region], margin: float | None = None) -> None:
-        """Replace the obstacle regions, planned around inflated by `margin` (default region_margin) plus the
-        mismatch margin; RegionError if they do not fit the slots, nothing changes then."""
+        """Replace the obstacle regions, planned around inflated by `margin` (default planning_margin: region_margin
+        and the robot's body) plus the mismatch margin; RegionError if they do not fit the slots, nothing changes
+        then."""
         mismatch = self.memory.mismatch.margin
-        m = (self.settings.region_margin if margin is None else margin) + mismatch
+        m = (self.settings.planning_margin if margin is None else margin) + mismatch
         given = tuple(regions)
         planned = tuple(r.inflated(m) if isinstance(r, Region) else r for r in given)
         slots = self.nlp.slot_layout.pack(list(planned), self.nlp.output_frame_available, predict=False)
@@ -51,8 +52,11 @@ class RuntimeChanges:
 
     def given_slot_values(self, time: float | None = None) -> np.ndarray:
         """The slot parameters of the regions as given, without the margins (`slot_values` plans around them
-        inflated): packed on request, to tell whether a region itself or only its margin is unavoidable."""
-        return self.nlp.slot_layout.pack(list(self._given), self.nlp.output_frame_available, time,
+        inflated), grown by the robot's body only (what the point the plane tracks must avoid): packed on request,
+        to tell whether a region itself or only its margin is unavoidable."""
+        body = self.settings.body_radius
+        real = [r.inflated(body) if body > 0 and isinstance(r, Region) else r for r in self._given]
+        return self.nlp.slot_layout.pack(real, self.nlp.output_frame_available, time,
                                          predict=self._moving and self.settings.predict_obstacles)
 
     @property
@@ -80,8 +84,8 @@ class RuntimeChanges:
     def update_settings(self, **changes: float | Sequence[float]) -> None:
         """Change run-time fields (mu, kappa, weights, predict_obstacles, ...) for the next step; nothing is rebuilt."""
         new = self.checked_settings(**changes)
-        if new.region_margin != self.settings.region_margin:
-            self.set_regions(self._given, new.region_margin)  # RegionError: nothing changes
+        if new.planning_margin != self.settings.planning_margin:
+            self.set_regions(self._given, new.planning_margin)  # RegionError: nothing changes
         self.settings = new
 
     def _track_mismatch(self, x: np.ndarray, time: float | None) -> None:
