@@ -25,6 +25,7 @@ pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's target
 REACH_WITHIN = 60.0  # s of real time (the room took 13-15 s here)
+BODY = 0.2  # m, config/unicycle_world.yaml footprint_radius
 
 
 def wall_distance(world_file: str, xy: np.ndarray) -> float:
@@ -66,8 +67,10 @@ def test_the_unicycle_reaches_its_goal_in_each_shipped_world(ros_graph, monkeypa
     outputs = [proc.output()[-2000:] for proc in procs]
     assert ok, (xy[-1:] if len(xy) else None, outputs)
     assert np.hypot(xy[-1, 0] - GOAL[0], xy[-1, 1] - GOAL[1]) <= 0.15
-    # the body (footprint_radius 0.2 m) against the walls and pillars: reported, not yet held (see the note in
-    # docs/usage.md, 'A world to drive in')
+    # the body (footprint_radius 0.2 m) clear of the walls and pillars: its centre at least the body's radius
+    # from every occupied cell's face (half a cell from its centre)
+    distance = wall_distance(world, xy)
     print(f"{world}: goal reached {took:.1f} s after the start, least distance to a wall cell's centre "
-          f"{wall_distance(world, xy):.3f} m (body 0.2 m + half a cell 0.025 m)")
+          f"{distance:.3f} m (body 0.2 m + half a cell 0.025 m)")
+    assert distance >= BODY + 0.025, distance
     assert all(proc.stop() == 0 for proc in procs), outputs
