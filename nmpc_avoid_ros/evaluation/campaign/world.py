@@ -6,11 +6,11 @@ the robot at rest at least 1 m from walls and pillars, the goal likewise and at 
 runs what the world launch runs (launch/world.launch.py), offline: a scan of the room and the walkers where
 they are at k Ts (core/loop/world.py: `BEAMS` beams to `RANGE_MAX`) -> the perception of the `obstacles`
 node (core/perception: fitted circles and walls, tracked, with velocities) -> the controller
-(config/unicycle_world.yaml, its body `footprint_radius`) -> the plant.
+(config/unicycle_world.yaml, its body `footprint_radius`) -> the plant, whose commands act ACTUATOR_DELAY late.
 
 A run's record: `reached` (the robot within GOAL_TOLERANCE of the goal from some sample on, to the end) and
 `time_to_goal` (s), `collision` (the body enters a wall, a pillar or a walker between the samples: the
-dense trajectory, core/loop/intersample.py) with `min_body_clearance` (m: the least distance of the body to
+plant integrated in pieces of Ts / 10) with `min_body_clearance` (m: the least distance of the body to
 an occupied cell or a walker; < 0 inside), `perception_ms` and `solve_ms` per sample, `fallbacks`. A room
 where the goal cannot be reached (pillars closing the way) is not drawn: the pillars keep a 1.5 m clear
 corridor along the straight line from start to goal.
@@ -28,7 +28,6 @@ from scipy.spatial import cKDTree
 
 from ...core.config.settings import ControllerSettings
 from ...core.loop.closed_loop import make_plant, run_closed_loop
-from ...core.loop.intersample import dense_states
 from ...core.loop.metrics import time_stats
 from ...core.loop.world import FREE, OCCUPIED, World
 from ...core.perception.grid import Grid
@@ -46,6 +45,9 @@ WALKER_RADIUS = 0.25
 GOAL_TOLERANCE = 0.15
 #: m, start and goal keep this from walls and pillars; the pillars keep CORRIDOR / 2 from the straight way
 CLEARANCE, CORRIDOR = 1.0, 1.5
+#: s, the robot's actuator delay (the plant node's input_delay in config/unicycle_world.yaml; the controller's
+#: input_delay predicts it: `--sweep input_delay=0.05,0` compares compensation on and off)
+ACTUATOR_DELAY = 0.05
 
 
 def world_scenario(rng: np.random.Generator, settings: ControllerSettings, model: Model) -> dict[str, Any]:
@@ -131,15 +133,29 @@ class SensedRegions:
 
 
 class TrackedPlant:
-    """A plant that tells the region schedule where the robot is after each sample."""
+    """The robot: a plant whose command acts `delay` s late (the previous one holds until then; none: the plant
+    holds its state), integrated in pieces of at most `dense` s whose states (`path` [J, n] at `times` [J], s)
+    are the run's truth between the samples; it tells the region schedule where the robot is after each
+    sample."""
 
-    def __init__(self, plant, regions: SensedRegions) -> None:
-        self.plant, self.regions = plant, regions
+    def __init__(self, plant, regions: SensedRegions, delay: float, dense: float, x0: np.ndarray) -> None:
+        self.plant, self.regions, self.delay, self.dense = plant, regions, delay, dense
+        self.previous: np.ndarray | None = None
+        self.path, self.times, self.t = [np.asarray(x0, float)], [0.0], 0.0
 
     def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        x_next = self.plant.advance(x, u, dt)
-        self.regions.advanced(x_next)
-        return x_next
+        wait = min(self.delay, dt)
+        for held, span in ((self.previous, wait), (np.asarray(u, float), dt - wait)):
+            pieces = math.ceil(span / self.dense - 1e-9) if span > 0 else 0
+            for _ in range(pieces):
+                if held is not None:
+                    x = self.plant.advance(x, held, span / pieces)
+                self.t += span / pieces
+                self.path.append(np.asarray(x, float))
+                self.times.append(self.t)
+        self.previous = np.asarray(u, float)
+        self.regions.advanced(x)
+        return x
 
 
 def body_clearance(spec: Mapping[str, Any], world: World, xy: np.ndarray, times: np.ndarray, body: float) -> float:
@@ -164,13 +180,14 @@ def score_world(spec: dict[str, Any], family: Any, tools: Any) -> dict[str, Any]
     controller.reset()
     settings, model = controller.settings, controller.model
     world = room_world(spec)
-    regions = SensedRegions(spec, world, settings, np.asarray(spec["x0"], float))
-    plant = TrackedPlant(make_plant(spec["plant"], model, settings), regions)
+    x0 = np.asarray(spec["x0"], float)
+    regions = SensedRegions(spec, world, settings, x0)
+    plant = TrackedPlant(make_plant(spec["plant"], model, settings), regions, ACTUATOR_DELAY,
+                         settings.sample_time / 10, x0)
     run = run_closed_loop(controller, spec["x0"], spec["target"], spec["steps"], plant, regions=regions)
-    ts, per_sample = settings.sample_time, 10
-    dense = dense_states(model, run.x, run.u, ts, per_sample)
-    times = np.arange(len(dense)) * ts / per_sample
-    body = max(settings.footprint_radius, 0.0)
+    ts = settings.sample_time
+    dense, times = np.array(plant.path), np.array(plant.times)
+    body = settings.body_radius
     distance = np.linalg.norm(run.x[:, :2] - np.asarray(spec["target"], float), axis=1)
     within = distance < GOAL_TOLERANCE
     reached_at = next((k for k in range(len(within)) if within[k:].all()), None)
