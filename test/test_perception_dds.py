@@ -58,6 +58,7 @@ def grid_message(node) -> OccupancyGrid:
     return msg
 
 
+@pytest.mark.slow  # 5-7 s: two nodes started, a diagnostics period or two waited for
 def test_scan_and_grid_regions_arrive_as_markers_and_a_bad_scan_is_refused_with_a_reason(ros_graph):
     _, _, start, probe_factory = ros_graph
     scan_node = start("obstacles", "--ros-args", "-p", "source:=scan", "-p", "max_walls:=10")
@@ -68,7 +69,10 @@ def test_scan_and_grid_regions_arrive_as_markers_and_a_bad_scan_is_refused_with_
     markers: dict[tuple[str, int], Marker] = {}
     statuses: list[dict[str, str]] = []
 
+    arrays: list[MarkerArray] = []
+
     def on_markers(msg: MarkerArray) -> None:
+        arrays.append(msg)
         for m in msg.markers:
             if m.action == Marker.DELETE:
                 markers.pop((m.ns, m.id), None)
@@ -114,6 +118,11 @@ def test_scan_and_grid_regions_arrive_as_markers_and_a_bad_scan_is_refused_with_
     # a scan with a zero angle increment: refused with its reason, counted; the regions stay
     before = {k: (m.pose.position.x, m.pose.position.y) for k, m in markers.items() if k[0] == "scan"}
     feed(5.0, until=lambda: any(int(s.get("refused", 0)) > 0 for s in statuses), increment=0.0)
+    # each refused scan sends the last good (static) regions again, unchanged: their lifetime does not run out
+    arrays_before = len(arrays)
+    feed(0.5, increment=0.0)
+    resent = [m for a in arrays[arrays_before:] for m in a.markers if m.ns == "scan"]
+    assert resent and all(m.action == Marker.ADD and (m.ns, m.id) in before for m in resent)
     refused = [s for s in statuses if int(s["refused"]) > 0]
     assert "angle_increment must be non-zero" in refused[-1]["last_refusal"]
     assert any(s["level"] == 1 for s in refused)  # WARN while refusing

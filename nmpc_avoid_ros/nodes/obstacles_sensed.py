@@ -16,8 +16,10 @@ so the regions of a stopped node expire.
 
 Bad input (a scan that cannot be placed, a grid whose fields do not fit, an unknown frame, a bad
 odometry) is refused with a rate-limited warning naming the reason and counted in /diagnostics; the
-regions last published stay in force (until their lifetime). NaN and infinite ranges are dropped and
-counted (REP 117: no return).
+regions last published stay in force: a refused scan sends the static ones again unchanged, so their
+lifetime does not end while the sensor sends what cannot be used (it does once the node stops; a moving
+one's pose goes stale and it expires). NaN and infinite ranges are dropped and counted (REP 117: no
+return).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import LaserScan
-from visualization_msgs.msg import MarkerArray
+from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.errors import ConfigError, InputError
 from ..core.perception.fitting import FitSettings
@@ -120,6 +122,7 @@ class SensedObstacles:
         self.grid: Grid | None = None
         self.fitted_at: tuple[Grid, Pose2D] | None = None  # the grid and pose of the last grid fit
         self.published_ids: set[int] = set()
+        self.last_good: MarkerArray | None = None
         self.counts = {"received": 0, "refused": 0, "published": 0, "not_finite_beams": 0, "out_of_range_beams": 0,
                        "regions": 0, "waiting_for_odom": 0}
         self.last_refusal = ""
@@ -155,6 +158,7 @@ class SensedObstacles:
             seen = self.perception.from_scan(scan_ranges(msg), scan_geometry(msg), self.pose_at(stamp), stamp)
         except InputError as exc:
             self.refuse(f"scan: {exc}")
+            self.resend_last_good()
             return
         self.publish(seen, msg.header.stamp)
 
@@ -197,14 +201,26 @@ class SensedObstacles:
 
     def publish(self, seen: Perceived, stamp: object, count_beams: bool = True) -> None:
         ids = {track_id for track_id, _ in seen.regions}
-        self.pub.publish(tracked_markers(seen.regions, sorted(self.published_ids - ids), self.ns, stamp,
-                                         self.odom_frame, self.lifetime))
+        markers = tracked_markers(seen.regions, sorted(self.published_ids - ids), self.ns, stamp, self.odom_frame,
+                                  self.lifetime)
+        self.pub.publish(markers)
+        # what a refused scan sends again: the static regions (a moving one's pose goes stale; it expires)
+        static = {track_id for track_id, region in seen.regions if not region.moving}
+        self.last_good = MarkerArray(markers=[m for m in markers.markers if m.action != Marker.DELETE
+                                              and m.id in static])
         self.published_ids = ids
         self.counts["published"] += 1
         self.counts["regions"] = len(ids)
         if count_beams:
             self.counts["not_finite_beams"] += seen.not_finite
             self.counts["out_of_range_beams"] += seen.out_of_range
+
+    def resend_last_good(self) -> None:
+        """The static regions last published, sent again unchanged (their stamps too): their lifetime restarts
+        while the sensor sends what cannot be used, and still ends once this node stops. Moving ones are not
+        (their pose goes stale; the controller would refuse them past max_obstacle_stamp_skew): they expire."""
+        if self.last_good is not None and self.last_good.markers:
+            self.pub.publish(self.last_good)
 
     def refuse(self, reason: str) -> None:
         self.counts["refused"] += 1
