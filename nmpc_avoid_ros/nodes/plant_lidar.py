@@ -44,8 +44,9 @@ LIDAR_SPECS = [
               read_only=True, float_range=(0.01, 2 * math.pi)),
     ParamSpec("lidar_range_max", 8.0, "longest range, m (beyond: +inf, no return)", ParameterType.PARAMETER_DOUBLE,
               read_only=True, float_range=(0.1, 100.0)),
-    ParamSpec("lidar_range_min", 0.05, "shortest range, m", ParameterType.PARAMETER_DOUBLE, read_only=True,
-              float_range=(0.0, 10.0)),
+    ParamSpec("lidar_range_min", 0.05, "shortest range, m (above 0: a scan's range_min <= 0 is refused by the "
+              "obstacles node, as by REP 117 readers)", ParameterType.PARAMETER_DOUBLE, read_only=True,
+              float_range=(0.001, 10.0)),
 ]
 
 
