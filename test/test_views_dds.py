@@ -40,10 +40,12 @@ RVIZ_TYPES = {"rviz_default_plugins/Odometry": "nav_msgs/msg/Odometry",
               "rviz_default_plugins/TwistStamped": "geometry_msgs/msg/TwistStamped",
               "rviz_default_plugins/SetGoal": "geometry_msgs/msg/PoseStamped",
               "rviz_default_plugins/Map": "nav_msgs/msg/OccupancyGrid",
-              "rviz_default_plugins/LaserScan": "sensor_msgs/msg/LaserScan"}
+              "rviz_default_plugins/LaserScan": "sensor_msgs/msg/LaserScan",
+              "rviz_default_plugins/Polygon": "geometry_msgs/msg/PolygonStamped"}
 #: the QoS a view reads a type with where the stream's reliable volatile one does not match: scans are sent
-#: best effort (sensor data), the map once, latched
-VIEW_QOS = {"sensor_msgs/msg/LaserScan": qos_profile_sensor_data, "nav_msgs/msg/OccupancyGrid": LATCHED_QOS}
+#: best effort (sensor data), the map and the footprint once, latched
+VIEW_QOS = {"sensor_msgs/msg/LaserScan": qos_profile_sensor_data, "nav_msgs/msg/OccupancyGrid": LATCHED_QOS,
+            "geometry_msgs/msg/PolygonStamped": LATCHED_QOS}
 #: what the views send to the controller (the goal tool) or show as sent to it: subscribed by it
 SENT_TO_CONTROLLER = {"/goal_pose", "/obstacles"}
 DEFAULT_VIEW_FRAMES = next(s.default for s in PLANT_SPECS if s.name == "view_frames")

@@ -1,7 +1,8 @@
 """The controller's outputs for people and tools (config/*.rviz, config/*.foxglove.json):
 `~/prediction` (Path), `~/regions` (MarkerArray), `~/steady_state` and `~/target_marker` (Marker),
 `~/stats` (Float64MultiArray) and `~/certificate` (Float64MultiArray), the latched `~/goal_reached` (std_msgs/Bool,
-transient local; nodes/controller_goal.py); the /diagnostics message."""
+transient local; nodes/controller_goal.py), for a robot with a body (`footprint_radius`, `footprint`) the latched
+`~/footprint` (geometry_msgs/PolygonStamped in its base frame, as nav2 publishes it); the /diagnostics message."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import json
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PolygonStamped
 from nav_msgs.msg import Path
 from rclpy.node import Node
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension
@@ -20,7 +22,14 @@ from ..core.errors import RegionError
 from ..core.loop.certificate import LAYOUT, CertificateSample
 from ..core.sample.step_result import StepResult
 from ..ros.parameters import LATCHED_QOS, STREAM_QOS
-from ..ros.visualization import prediction_path, regions_markers, stats_array, steady_state_marker, target_marker
+from ..ros.visualization import (
+    footprint_polygon,
+    prediction_path,
+    regions_markers,
+    stats_array,
+    steady_state_marker,
+    target_marker,
+)
 from .controller_io import ArrayInterface, RobotInterface
 
 
@@ -38,12 +47,25 @@ class ControllerViews:
         self.certificate_layout = [MultiArrayDimension(label=",".join(LAYOUT), size=len(LAYOUT), stride=len(LAYOUT))]
         self.goal_reached = node.create_publisher(Bool, "~/goal_reached", LATCHED_QOS)
         self.publish_goal_reached(False)  # a late joiner hears where things stand
+        self.footprint = node.create_publisher(PolygonStamped, "~/footprint", LATCHED_QOS)
+        self._body: tuple | None = None  # the body last published (footprint, radius)
+        self.publish_footprint(node.controller.settings)
+
+    def publish_footprint(self, settings: ControllerSettings) -> None:
+        """The body, once and whenever it changes (a robot interface with a body only: its base frame)."""
+        body = (tuple(settings.footprint), settings.footprint_radius)
+        base = getattr(self.io, "base_frame", None)
+        if base is None or settings.body_radius <= 0 or body == self._body:
+            return
+        self._body = body
+        self.footprint.publish(footprint_polygon(*body, base, self.node.get_clock().now().to_msg()))
 
     def publish(self, result: StepResult, settings: ControllerSettings, regions: tuple, state_time: float,
                 target: np.ndarray | None) -> None:
         """The plan of `result`, the regions at `state_time` (s, node clock) and, for moving ones, at
         each later stage of the horizon as the NLP predicts them."""
         stamp = self.node.get_clock().now().to_msg()
+        self.publish_footprint(settings)
         plane, frames = settings.plane, self.io.frames
         self.prediction.publish(prediction_path(result.states, plane, stamp, frames.state, self.io.heading_index))
         try:
@@ -72,7 +94,7 @@ class ControllerViews:
 
     def destroy(self) -> None:
         for publisher in (self.prediction, self.regions, self.steady_state, self.target, self.stats, self.certificate,
-                          self.goal_reached):
+                          self.goal_reached, self.footprint):
             self.node.destroy_publisher(publisher)
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, PoseStamped
+from geometry_msgs.msg import Point, Point32, PolygonStamped, PoseStamped
 from nav_msgs.msg import Path
 from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from visualization_msgs.msg import Marker, MarkerArray
@@ -102,4 +102,22 @@ def stats_array(solve_time: float, iterations: int, offset: float, avoidance: fl
     values = [solve_time * 1e3, float(iterations), offset, avoidance, tracking]
     msg = Float64MultiArray(data=[float(v) if math.isfinite(v) else math.nan for v in values])
     msg.layout.dim = [MultiArrayDimension(label=",".join(STATS_LABELS), size=len(values), stride=len(values))]
+    return msg
+
+
+#: corners of the polygon drawn for a round body (footprint_radius)
+ROUND_BODY_CORNERS = 24
+
+
+def footprint_polygon(footprint: Sequence[float], radius: float, frame: str, stamp: Time) -> PolygonStamped:
+    """The robot's body in `frame` (base_link): the footprint polygon (x1, y1, x2, y2, ... m) if given, else a
+    circle of `radius` (m) as ROUND_BODY_CORNERS corners (nav2's footprint topic type)."""
+    if len(footprint) >= 6:
+        corners = list(zip(footprint[0::2], footprint[1::2], strict=True))
+    else:
+        angles = np.linspace(0.0, 2 * math.pi, ROUND_BODY_CORNERS, endpoint=False)
+        corners = list(zip(radius * np.cos(angles), radius * np.sin(angles), strict=True))
+    msg = PolygonStamped()
+    msg.header.stamp, msg.header.frame_id = stamp, frame
+    msg.polygon.points = [Point32(x=float(x), y=float(y), z=0.0) for x, y in corners]
     return msg
