@@ -42,7 +42,7 @@ class _Phases(SearchPhases):
         self.memory = SampleMemory()
         self.memory.plan = SimpleNamespace(y_a=np.array([1.0]))
         self._regions = ()
-        self.base = SimpleNamespace(label="shifted", nlp=self.nlp, w=np.array([1.0]), depth=0.0)
+        self.base = SimpleNamespace(label="shifted", nlp=self.nlp, w=np.array([1.0]), depth=0.0, clear=True)
         guesses = [SimpleNamespace(label=f"e{i}") for i in range(ESCAPE_GUESSES)]
         self.escape = SimpleNamespace(available=True, should_try=lambda *a: True,
                                       guesses=lambda *a: guesses, penetration_guesses=lambda *a: guesses)
@@ -59,7 +59,8 @@ class _Phases(SearchPhases):
         return [SimpleNamespace(label="shifted")], "warm"
 
 
-def _search(starts, par, time_left, report, phase, tolerance, base=None, admit=None, stop_at_clear=False):
+def _search(starts, par, time_left, report, phase, tolerance, base=None, admit=None, stop_at_clear=False,
+            allowance=1e-3):
     """Every guess in vain: the regular start gives the stalled plan, the escape keeps its base, no passage."""
     labels = [s.label for s in starts]
     report.tried.extend(SimpleNamespace(label=label, phase=phase) for label in labels)
@@ -74,7 +75,7 @@ def test_every_passage_guess_is_tried_before_the_escape_comes_back(monkeypatch) 
     monkeypatch.setattr(search_phases, "search", _search)
     monkeypatch.setattr(search_phases, "guess_start", lambda nlp, x, par, guess, *a, **k: guess)
     sample = SimpleNamespace(in_domain=True, par=np.zeros(1), x=np.zeros(2), y_t=np.array([2.0]), seconds=0.0,
-                             regular=None, time_left=lambda: 1.0)
+                             regular=None, time_left=lambda: 1.0, allowance=1e-3)
     solved: list[tuple[str, str]] = []
     for _ in range(ESCAPE_GUESSES + PASSAGE_GUESSES + 2):
         report = SearchReport()

@@ -205,10 +205,13 @@ def solve_start(start: Start, par: np.ndarray, feasibility_tolerance: float) -> 
 
 def depth_allowance(initial_depth: float) -> float:
     """The depth [g] a plan may predict and count as clear, given the depth of the region rows at its x(0)
-    (measured, not decided): VIOLATION_TOLERANCE, or that depth plus it where x(0) is already deeper than the
-    tolerance (a state inside a margin's band: every plan's first slack holds x(0)'s rows, so judged by the
-    absolute depth every plan from there "penetrates", and the search went on to the escape guesses: the live
-    mobile robot's searches at its speed limit took 0.13-0.21 s instead of ~15 ms)."""
+    (measured, not decided) where x(0) lies in a keep-in margin's band only (inside the keep-in sets themselves;
+    the caller tells, core/sample/fallback.py `allowance`): VIOLATION_TOLERANCE, or that depth plus it where it
+    is deeper than the tolerance. Every plan's first slack holds x(0)'s rows, so judged by the absolute depth every plan
+    from a state in the band "penetrates", and the search went on to the escape guesses: the live mobile
+    robot's searches at its speed limit took 0.13-0.21 s instead of ~15 ms. A state outside a keep-in set, or
+    in an obstacle's margin, is judged as before: its plans penetrate, and the guard says whether it can be
+    left."""
     return VIOLATION_TOLERANCE + (initial_depth if initial_depth > VIOLATION_TOLERANCE else 0.0)
 
 

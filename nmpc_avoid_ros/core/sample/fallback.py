@@ -98,10 +98,13 @@ class FallbackSelector:
         # JUDGED_KEEP_IN_MARGIN of their margin
         depth = self._judged_depth = depth_function(parts, model,
                                                     min(settings.keep_in_margin, JUDGED_KEEP_IN_MARGIN))
-        # the rows at x(0) as the NLP plans them (every margin), which no plan from x(0) can change
-        u0 = ca.SX.sym("u0", m)
-        rows = depth_function(parts, model)(x0, u0, par, 0.0)
-        self._initial_depth = Buffered(ca.Function("initial_depth", [x0, u0, par], [ca.mmax(ca.vertcat(rows, 0))]))
+        # the keep-in rows at x(0) (the first rows of the region functions), which no plan from x(0) can change:
+        # as the NLP plans them (keep_in_margin) and as judged (at most JUDGED_KEEP_IN_MARGIN)
+        u0, keep = ca.SX.sym("u0", m), len(settings.keep_in)
+        planned = depth_function(parts, model)(x0, u0, par, 0.0)[:keep]
+        judged = depth(x0, u0, par, 0.0)[:keep]
+        self._initial_keep_in_depth = Buffered(ca.Function("initial_keep_in_depth", [x0, u0, par], [
+            ca.mmax(ca.vertcat(planned, 0)), ca.mmax(ca.vertcat(judged, 0))]))
         x_lo, x_hi = np.array(settings.state_min, float), np.array(settings.state_max, float)
         states, excess = [x0], []
         x = x0
@@ -151,10 +154,15 @@ class FallbackSelector:
         return u
 
     def allowance(self, x: np.ndarray, u: np.ndarray | None, par: np.ndarray) -> float:
-        """The depth [g] a plan from x [n] (under u [m] for output-frame rows; None: the safe input) may predict
-        and be clear at the regular NLP's parameters par (core/nlp/search.py `depth_allowance`)."""
+        """The depth [g] a plan from x [n] (under u [m]; None: the safe input) may predict and be clear at the
+        regular NLP's parameters par: x(0)'s own keep-in depth where x(0) lies in the keep_in_margin band only
+        (inside every keep-in set with at most JUDGED_KEEP_IN_MARGIN), else VIOLATION_TOLERANCE (core/nlp/search.py
+        `depth_allowance`). The obstacles' margins get none: a plan from a state in an obstacle's band is judged
+        penetrating as before, and its search goes on to the escape guesses, which is how the paper's Euler
+        config passes the README ellipse (test_intersample)."""
         u = self.safe_input if u is None else u
-        return depth_allowance(float(self._initial_depth(x, u, par)[0][0]))
+        planned, judged = (float(v[0]) for v in self._initial_keep_in_depth(x, u, par))
+        return depth_allowance(planned) if judged <= VIOLATION_TOLERANCE else VIOLATION_TOLERANCE
 
     def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
         """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""
