@@ -25,7 +25,6 @@ from sensor_msgs.msg import LaserScan
 from ..core.errors import ConfigError
 from ..core.loop.scene import load_scene
 from ..core.loop.world import find_world, load_world
-from ..core.perception.raycast import cast
 from ..core.perception.scan import Pose2D
 from ..core.problem.shapes import Ellipse
 from ..ros.parameters import LATCHED_QOS, ParamSpec
@@ -98,10 +97,7 @@ class SimulatedLidar:
         pose, _ = self.node.pose_and_velocity()
         circles, segments = self.circles_and_segments()
         sensor = Pose2D(*pose)
-        ranges = self.world.scan(sensor, self.angles, self.range_max, self.range_min, circles)
-        if segments:
-            ranges = np.minimum(ranges, cast(sensor, self.angles, segments=segments, range_max=self.range_max))
-        return ranges
+        return self.world.scan(sensor, self.angles, self.range_max, self.range_min, circles, segments)
 
     def publish_scan(self) -> None:
         msg = laser_scan_message(self.scan(), self.angle_min, self.angle_increment, self.range_min, self.range_max,

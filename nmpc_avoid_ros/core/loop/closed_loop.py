@@ -82,27 +82,35 @@ class DelayedPlant:
     """A plant whose commands act `delay` s after the state they answer: over each sample the previous
     command holds for `delay`, the new one for the rest (the real-time loop's latency, offline). Until the
     first command acts the plant holds its state (the plant node's `hold_until_command`). `dense` (s, 0:
-    off) records the state every `dense` s in `path`, so that what happens between the samples is seen."""
+    off) records the state every `dense` s in `path`, at `times` (s since the first advance), so that what
+    happens between the samples is seen."""
 
     def __init__(self, plant: Plant, delay: float, dense: float = 0.0) -> None:
         self.plant, self.delay, self.dense = plant, delay, dense
         self.previous: np.ndarray | None = None
         self.path: list[np.ndarray] = []
+        self.times: list[float] = []
+        self.t = 0.0
 
     def _hold(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         pieces = max(1, math.ceil(dt / self.dense - 1e-9)) if self.dense > 0 else 1
         for _ in range(pieces):
             x = self.plant.advance(x, u, dt / pieces)
+            self.t += dt / pieces
             if self.dense > 0:
                 self.path.append(x)
+                self.times.append(self.t)
         return x
 
     def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         u, wait = np.asarray(u, float), min(self.delay, dt)
         if self.previous is not None and wait > 0:
             x = self._hold(np.asarray(x, float), self.previous, wait)
-        elif self.dense > 0 and wait > 0:
-            self.path.append(np.asarray(x, float))
+        elif wait > 0:  # held before the first command: no motion
+            if self.dense > 0:
+                self.path.append(np.asarray(x, float))
+                self.times.append(self.t)
+            self.t += wait
         dt -= wait
         self.previous = u
         return self._hold(np.asarray(x, float), u, dt) if dt > 0 else np.asarray(x, float)

@@ -65,9 +65,10 @@ class World:
         return hit.reshape(np.shape(points)[:-1])
 
     def scan(self, sensor: Pose2D, angles: np.ndarray, range_max: float, range_min: float = 0.0,
-             circles: Sequence[tuple[float, float, float]] = ()) -> np.ndarray:
+             circles: Sequence[tuple[float, float, float]] = (),
+             segments: Sequence[tuple[float, float, float, float]] = ()) -> np.ndarray:
         """Ranges [B] (m; +inf: no return within range_max) of beams at `angles` [B] (rad, sensor frame) from
-        `sensor` (pose in the map frame) to the first occupied cell or circle (cx, cy, r)."""
+        `sensor` (pose in the map frame) to the first occupied cell, circle (cx, cy, r) or segment (x0, y0, x1, y1)."""
         angles = np.asarray(angles, float)
         step = self.grid.resolution / STEPS_PER_CELL
         t = np.arange(max(range_min, step), range_max + step, step)  # [T]
@@ -77,8 +78,8 @@ class World:
         hit = self.occupied(points)  # [B, T]
         first = np.argmax(hit, axis=1)
         walls = np.where(hit.any(axis=1), t[first], np.inf)
-        ranges = np.minimum(walls, cast(sensor, angles, circles=circles, range_max=range_max)) if len(circles) \
-            else walls
+        moving = len(circles) or len(segments)
+        ranges = np.minimum(walls, cast(sensor, angles, segments, circles, range_max)) if moving else walls
         ranges[(ranges > range_max) | (ranges < range_min)] = np.inf
         return ranges
 

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...core.config.settings import ControllerSettings
-from ...core.loop.closed_loop import make_plant, run_closed_loop
+from ...core.loop.closed_loop import DelayedPlant, make_plant, run_closed_loop
 from ...core.loop.metrics import time_stats
 from ...core.loop.world import FREE, OCCUPIED, World
 from ...core.perception.grid import Grid
@@ -132,28 +132,16 @@ class SensedRegions:
         return [region for _, region in seen.regions]
 
 
-class TrackedPlant:
-    """The robot: a plant whose command acts `delay` s late (the previous one holds until then; none: the plant
-    holds its state), integrated in pieces of at most `dense` s whose states (`path` [J, n] at `times` [J], s)
-    are the run's truth between the samples; it tells the region schedule where the robot is after each
-    sample."""
+class TrackedPlant(DelayedPlant):
+    """The robot: a plant whose command acts `delay` s late, its states every `dense` s kept (DelayedPlant: the
+    run's truth between the samples), telling the region schedule where the robot is after each sample."""
 
-    def __init__(self, plant, regions: SensedRegions, delay: float, dense: float, x0: np.ndarray) -> None:
-        self.plant, self.regions, self.delay, self.dense = plant, regions, delay, dense
-        self.previous: np.ndarray | None = None
-        self.path, self.times, self.t = [np.asarray(x0, float)], [0.0], 0.0
+    def __init__(self, plant, regions: SensedRegions, delay: float, dense: float) -> None:
+        super().__init__(plant, delay, dense)
+        self.regions = regions
 
     def advance(self, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        wait = min(self.delay, dt)
-        for held, span in ((self.previous, wait), (np.asarray(u, float), dt - wait)):
-            pieces = math.ceil(span / self.dense - 1e-9) if span > 0 else 0
-            for _ in range(pieces):
-                if held is not None:
-                    x = self.plant.advance(x, held, span / pieces)
-                self.t += span / pieces
-                self.path.append(np.asarray(x, float))
-                self.times.append(self.t)
-        self.previous = np.asarray(u, float)
+        x = super().advance(x, u, dt)
         self.regions.advanced(x)
         return x
 
@@ -183,10 +171,10 @@ def score_world(spec: dict[str, Any], family: Any, tools: Any) -> dict[str, Any]
     x0 = np.asarray(spec["x0"], float)
     regions = SensedRegions(spec, world, settings, x0)
     plant = TrackedPlant(make_plant(spec["plant"], model, settings), regions, ACTUATOR_DELAY,
-                         settings.sample_time / 10, x0)
+                         settings.sample_time / 10)
     run = run_closed_loop(controller, spec["x0"], spec["target"], spec["steps"], plant, regions=regions)
     ts = settings.sample_time
-    dense, times = np.array(plant.path), np.array(plant.times)
+    dense, times = np.vstack([x0, *plant.path]), np.array([0.0, *plant.times])
     body = settings.body_radius
     distance = np.linalg.norm(run.x[:, :2] - np.asarray(spec["target"], float), axis=1)
     within = distance < GOAL_TOLERANCE
