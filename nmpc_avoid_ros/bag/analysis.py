@@ -154,8 +154,8 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
 
     `settings`: the controller's, for its model and for the obstacle capacities, speed and stamp
     limits its region store applied (default: ControllerSettings()). `bag`: the bag at `path` already
-    read (load_bag), so it is not read twice. The targets are those the controller accepted
-    (bag/timeline.py; p from the samples' y_a); the interface comes from the controller's recorded
+    read (load_bag), so it is not read twice. The targets are those the controller accepted: each
+    sample's own `target` value where recorded, else by log time (bag/timeline.py; p from the samples' y_a); the interface comes from the controller's recorded
     parameters (else inferred from the topics).
     """
     bag = bag if bag is not None else load_bag(path, progress_every=20000 if progress else 0)
@@ -171,6 +171,12 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
     events = target_events(bag, p, interface, controller_node, bool(make_model(settings.model).angle_outputs))
     stamps = [stamp for stamp, _ in samples]
     targets = targets_at(events, stamps, p)
+    # the controller names the y_t each sample solved for: the recorder's log times cannot order a target
+    # from `send` against the first diagnostic that used it (two publishers); older bags: the log times
+    said = [_float_list(v["target"]) if v.get("target") else None for _, v in samples]
+    for k, value in enumerate(said):
+        if value is not None and len(value) == p:
+            targets[k] = value
     regions = regions_at(bag, settings, interface, stamps, controller_node)
     state_topic = topic_named(bag, "state", controller_node)
     final_state = None

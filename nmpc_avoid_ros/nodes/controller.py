@@ -197,6 +197,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         self.state_time: float | None = None  # node-clock seconds of the last good state
         self.state_time_ns: int | None = None  # the same in ns
         self.state_solved = True  # lockstep: has the latest state been answered?
+        self.solved_target: np.ndarray | None = None  # y_t of the last solved sample
         self.fresh_state = False  # a good state arrived since the last solve
         self.stale_since: float | None = None  # node-clock time the current stale episode began
         self.state_age = math.nan  # s, age of the state at the start of the last sample
@@ -415,6 +416,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         self.cover_due = now + (hold or self.timing.expected())  # the plan assumes the last command until then
         quick = self.timing.predicted(self.state_age, 0.0, True) + self.options.transport_delay \
             if compensate and not self.cover_hold else ahead
+        self.solved_target = self.target  # the diagnostics name it: a bag's log times cannot order it and the sample
         result = self.controller.step(self.state, self.target, time=self.state_time, latency=quick,
                                       search_latency=ahead,
                                       command=self.last_command if compensate and self.last_result else None)
@@ -473,6 +475,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         values = {**{k: str(v) for k, v in self.counts.items()}, "mu": f"{s.mu:g}", "kappa": f"{s.kappa:g}",
                   "nlp_builds": str(self.controller.nlp_builds), "regions": str(len(self.controller.regions)),
                   "command": str(np.asarray(self.last_command).tolist()),
+                  "target": "" if self.solved_target is None else str(self.solved_target.tolist()),
                   "state_age_ms": f"{self.state_age * 1e3:.1f}",
                   "predicted_delay_ms": f"{(result.delay if result else 0.0) * 1e3:.2f}",
                   "expected_latency_ms": f"{self.timing.expected() * 1e3:.2f}",
