@@ -68,7 +68,11 @@ def shipped_paper():
     return shipped_paper_run
 
 
-_DOMAIN_BASE = 10 + os.getpid() % 40  # distinct from other concurrent test sessions on this host
+# each pytest-xdist worker its own block of 25 domains, the session's blocks apart from another session's on
+# this host (by the session's pid: the workers' parent); ids stay below 160 (test_lifecycle_qos takes 200)
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
+_SESSION = os.getppid() if _WORKER else os.getpid()
+_DOMAIN_BASE = 10 + 50 * (_SESSION % 3) + 25 * (int(_WORKER[2:]) % 2 if _WORKER[2:].isdigit() else 0)
 _domain_counter = itertools.count()
 
 
@@ -77,7 +81,7 @@ def ros_graph(tmp_path):
     """(domain_id, env, start, probe_factory): isolated DDS domain; every started node is stopped."""
     from rosgraph import NodeProcess, Probe, ros_env
 
-    domain = _DOMAIN_BASE + 2 * (next(_domain_counter) % 25)
+    domain = _DOMAIN_BASE + next(_domain_counter) % 25
     log_dir = tmp_path / "ros_logs"
     log_dir.mkdir()
     env = ros_env(domain, log_dir)

@@ -210,3 +210,25 @@ def test_every_solver_path_runs_a_declared_model_past_a_region_between_the_sampl
     dense = dense_run(settings, make_model(str(path)), run.x, run.u, run.regions)[0]
     scaled = (dense[:, :2] - ellipse.center) / ellipse.semi_axes
     assert np.min(np.sum(scaled**2, axis=1)) > 1.0 - 1e-2
+
+
+def test_a_configs_model_parameters_override_the_files_defaults_and_bad_ones_are_refused_in_one_line(tmp_path):
+    path = str(write(tmp_path, PENDULUM))
+    x, u = [0.5, 0.0], [0.0]
+    default = np.array(ControllerSettings(model=path).build_model().dynamics(x, u)).ravel()
+    longer = ControllerSettings(model=path, model_parameters=("l=2.0", "b = 0"))
+    assert longer.build_model().parameters == {"g": 9.81, "l": 2.0, "b": 0.0}
+    changed = np.array(longer.build_model().dynamics(x, u)).ravel()
+    assert changed[1] == pytest.approx(default[1] / 2) and default[1] == pytest.approx(-9.81 * np.sin(0.5))
+    # the steady-state map reads them too: the torque holding the pendulum at 0.5 rad halves with l = 2
+    x_s, u_s = longer.build_model().steady_state(np.array([0.5]))
+    assert float(u_s) == pytest.approx(9.81 / 2 * np.sin(0.5))
+    with pytest.raises(ModelFileError, match=r"model\.yaml:2: parameter 'length' is not declared"):
+        ControllerSettings(model=path, model_parameters=("length=2.0",))  # refused at construction, not at a build
+    for bad in ("l", "l=nan", "l=two", "1l=2", "=2"):
+        with pytest.raises(ConfigError, match="model_parameters: .* is not 'name=value' with a finite number"):
+            ControllerSettings(model=path, model_parameters=(bad,))
+    with pytest.raises(ConfigError, match="'l' given twice"):
+        ControllerSettings(model=path, model_parameters=("l=1", "l=2"))
+    shipped = ControllerSettings(model="bicycle", model_parameters=("wheelbase=1.0",)).build_model()
+    assert shipped.parameters["wheelbase"] == 1.0  # a shipped model is a model file like any other

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -165,3 +166,22 @@ def test_no_alias_frames_when_view_frames_is_emptied_and_no_tf_for_van_der_pol(f
     assert getattr(plant, "kept", {}) == {} and plant.pub_odom is None
     plant = make_plant(model="unicycle", interface="robot", publish_tf=False)
     assert getattr(plant, "kept", {}) == {}
+
+
+def test_the_plant_simulates_its_model_parameters_and_replay_builds_the_recorded_ones(make_plant):
+    from nmpc_avoid_ros.bag.mcap_io import Bag
+    from nmpc_avoid_ros.bag.node_parameters import RecordedSetup
+    from nmpc_avoid_ros.core.config.settings import ControllerSettings
+    from nmpc_avoid_ros.evaluation.counterfactual import _plant_choice
+
+    longer = make_plant(model="bicycle", interface="robot", lockstep=True, sample_time=0.2,
+                        model_parameters=["wheelbase=1.0"])
+    default = make_plant(model="bicycle", interface="robot", lockstep=True, sample_time=0.2)
+    assert (longer.model.parameters["wheelbase"], default.model.parameters["wheelbase"]) == (1.0, 0.5)
+    setup = RecordedSetup(plant={"model": "bicycle", "integration": "continuous", "lockstep": False,
+                                 "model_parameters": ["wheelbase=1.0"]}, plant_node="/plant")
+    settings = ControllerSettings(model="bicycle")
+    bag = Bag(path=Path("run.mcap"), topics={}, types={}, finished=True, files=[])
+    assert _plant_choice(bag, setup, settings, None).make_model().parameters["wheelbase"] == 1.0
+    assert _plant_choice(bag, RecordedSetup(), settings.replace(model_parameters=("wheelbase=0.8",)),
+                         None).make_model().parameters["wheelbase"] == 0.8  # no plant recorded: the controller's

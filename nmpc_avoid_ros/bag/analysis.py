@@ -20,7 +20,6 @@ from ..core.config.settings import ControllerSettings
 from ..core.loop.alarm import ALARM_DEPTH
 from ..core.loop.intersample import dense_run
 from ..core.loop.metrics import max_abs_product, outputs, penetration, region_values, time_stats
-from ..core.problem.models import make_model
 from ..core.problem.regions import Region
 from ..core.sample.status import StepStatus
 from .distance import nearest_region_distance
@@ -154,9 +153,9 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
 
     `settings`: the controller's, for its model and for the obstacle capacities, speed and stamp
     limits its region store applied (default: ControllerSettings()). `bag`: the bag at `path` already
-    read (load_bag), so it is not read twice. The targets are those the controller accepted: each
-    sample's own `target` value where recorded, else by log time (bag/timeline.py; p from the samples' y_a); the interface comes from the controller's recorded
-    parameters (else inferred from the topics).
+    read (load_bag), so it is not read twice. The targets are those the controller accepted: each sample's
+    own `target` value where recorded, else by log time (bag/timeline.py; p from the samples' y_a); the
+    interface comes from the controller's recorded parameters (else inferred from the topics).
     """
     bag = bag if bag is not None else load_bag(path, progress_every=20000 if progress else 0)
     samples, controller_node = controller_samples(bag)
@@ -165,10 +164,10 @@ def load_run(path: str | Path, progress: bool = False, settings: ControllerSetti
                        f"topics: {', '.join(sorted(bag.topics)) or 'none'}")
     settings = settings or ControllerSettings()
     y_a = [_float_list(v["y_a"]) for _, v in samples]
-    p = len(y_a[0]) or make_model(settings.model).p
+    p = len(y_a[0]) or settings.build_model().p
     interface = controller_interface(bag, node_parameters(bag)[0].get(controller_node or ""))
     # a model with an angle output (unicycle_pose) takes the goal's heading too (nodes/controller_io.py)
-    events = target_events(bag, p, interface, controller_node, bool(make_model(settings.model).angle_outputs))
+    events = target_events(bag, p, interface, controller_node, bool(settings.build_model().angle_outputs))
     stamps = [stamp for stamp, _ in samples]
     targets = targets_at(events, stamps, p)
     # the controller names the y_t each sample solved for: the recorder's log times cannot order a target
@@ -237,7 +236,7 @@ def run_metrics(run: RecordedRun, settings: ControllerSettings) -> dict[str, Any
     under its command, acting when the controller predicted it would (core/loop/intersample.py). The recorded
     plant states, the truth, are
     bag/truth.py's (`analyze` reports them beside these)."""
-    model = make_model(settings.model)
+    model = settings.build_model()
     xs = run.states_with_final
     y = outputs(model, xs, run.u)
     accepted = [e for e in run.target_events if e.accepted]
@@ -321,7 +320,7 @@ def moving_snapshots(run: RecordedRun, settings: ControllerSettings, count: int 
     states = run.states_with_final
     ts = settings.sample_time
     moving = [tuple(r for r in run.regions_at(k, ts) if r.moving) for k in range(len(states))]
-    y = outputs(make_model(settings.model), states, run.u)
+    y = outputs(settings.build_model(), states, run.u)
     worst = region_values(settings, states, y, moving)
     picks = {int(round(i)) for i in np.linspace(0, len(states) - 1, count)}
     if np.any(np.isfinite(worst)):

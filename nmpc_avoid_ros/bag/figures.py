@@ -18,7 +18,7 @@ from matplotlib.patches import Ellipse as EllipsePatch  # noqa: E402
 from matplotlib.patches import Polygon as PolygonPatch  # noqa: E402
 
 from ..core.config.settings import ControllerSettings  # noqa: E402
-from ..core.problem.models import Model, make_model  # noqa: E402
+from ..core.problem.models import Model  # noqa: E402
 from ..core.problem.regions import Ellipse, Polygon, Region  # noqa: E402
 
 COLORS = ("black", "tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
@@ -235,7 +235,7 @@ def run_figures(traces: Sequence[Trace], settings: ControllerSettings, target: S
     """OUT/phase_portrait.png and OUT/time_series.png of runs of one configuration (the paper's
     shaded region when its keep-in |x1 x2| <= 2 is configured); `what` ends the titles. The targets
     marked and drawn are the traces' `targets` where they have them, else `target` (None or nan: none)."""
-    model = make_model(settings.model)
+    model = settings.build_model()
     paper_region = model.name == "van_der_pol" and any("x1*x2" in k.replace(" ", "") for k in settings.keep_in)
     lo, hi = settings.state_min, settings.state_max
     held = [row for trace in traces if trace.targets is not None for row in np.atleast_2d(trace.targets)]

@@ -28,7 +28,6 @@ import numpy as np
 
 from ..core.config.settings import ControllerSettings
 from ..core.loop.metrics import keep_in_values
-from ..core.problem.models import make_model
 from ..core.problem.regions import Ellipse, Region
 from .analysis import RecordedRun, run_metrics
 from .mcap_io import Bag
@@ -85,7 +84,7 @@ def keep_in_grid(settings: ControllerSettings, box: tuple[tuple[float, float], t
     """Where the keep-in expressions are violated on a grid of the plane (see the module doc)."""
     if not settings.keep_in:
         return None
-    model = make_model(settings.model)
+    model = settings.build_model()
     (x_lo, x_hi), (y_lo, y_hi) = box
     nx, ny = GRID
     gx, gy = np.meshgrid(np.linspace(x_lo, x_hi, nx), np.linspace(y_lo, y_hi, ny))
@@ -111,7 +110,7 @@ def plane_box(settings: ControllerSettings, states: np.ndarray) -> tuple[tuple[f
 
 def report_data(run: RecordedRun, bag: Bag, settings: ControllerSettings, label: str) -> dict[str, Any]:
     """The JSON of one bag for the report page (layout: module doc)."""
-    model = make_model(settings.model)
+    model = settings.build_model()
     plane = tuple(settings.plane)
     xs = run.states_with_final
     x_a = None

@@ -24,7 +24,6 @@ import numpy as np
 
 from ..core.config.settings import ControllerSettings
 from ..core.errors import InputError
-from ..core.problem.models import make_model
 from ..core.problem.regions import Region
 from ..core.sample.step_result import validate_vector
 from .mcap_io import Bag
@@ -162,7 +161,7 @@ def region_feed(bag: Bag, settings: ControllerSettings, interface: Interface, no
     aliases = {interface.odom_frame: "output"} if interface.name == "robot" else {}
     store = RegionStore(max_ellipses=settings.max_ellipses, max_polygons=settings.max_polygons,
                         max_polygon_vertices=settings.max_polygon_vertices,
-                        output_frame_available=make_model(settings.model).p >= 2, max_markers_per_message=10**6,
+                        output_frame_available=settings.build_model().p >= 2, max_markers_per_message=10**6,
                         max_speed=settings.max_obstacle_speed, max_stamp_skew=settings.max_obstacle_stamp_skew,
                         frame_aliases=aliases)
     name = topic_named(bag, "obstacles", node)

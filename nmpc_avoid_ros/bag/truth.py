@@ -28,7 +28,7 @@ import numpy as np
 
 from ..core.config.settings import ControllerSettings
 from ..core.loop.metrics import keep_in_values, max_abs_product, outputs, penetration, region_values
-from ..core.problem.models import Model, make_model
+from ..core.problem.models import Model
 from .analysis import RecordedRun, run_metrics
 from .distance import nearest_region_distance, plane_units
 from .mcap_io import Bag, BagError
@@ -102,7 +102,7 @@ def bag_metrics(bag: Bag, run: RecordedRun, settings: ControllerSettings) -> dic
     """metrics.json's entry for one bag: run_metrics with its sample-based clearance moved under
     `clearance.at_samples` and the re-simulation under `clearance.resimulated_between_samples`, beside
     `clearance.recorded_states`; per segment the recorded states' clearance; the state and input boxes."""
-    model = make_model(settings.model)
+    model = settings.build_model()
     if run.x.shape[1] != model.n or run.u.shape[1] != model.m:
         raise BagError(f"{run.path}: the samples have {run.x.shape[1]} states and {run.u.shape[1]} inputs, the "
                        f"settings' model {model.name} {model.n} and {model.m}: give the run's params file (--config)")

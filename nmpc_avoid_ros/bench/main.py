@@ -42,7 +42,7 @@ from ..core.errors import NmpcError
 from ..core.loop.closed_loop import ClosedLoop, Stepper, Trajectory, make_plant
 from ..core.loop.metrics import max_abs_product, outputs, penetration, time_stats, tracking
 from ..core.loop.scene import load_scene
-from ..core.problem.models import Model, make_model
+from ..core.problem.models import Model
 from ..core.problem.regions import Ellipse, Region
 from .variants import OursStepper, Sample
 
@@ -107,7 +107,7 @@ def _config(name: str) -> dict[str, Any]:
 def paper_scenarios(steps: int) -> list[Scenario]:
     """The four paper runs (mu 0 / 1e8, Euler / continuous plant)."""
     base = with_capacity(ControllerSettings.from_params(_config("van_der_pol.yaml")), 0)
-    model = make_model(base.model)
+    model = base.build_model()
     return [Scenario(f"paper/mu={mu:g}/{plant}", base.replace(mu=mu), model, np.array([-5.0, 0.0]),
                      np.array([5.0]), steps, plant)
             for mu in (0.0, 1e8) for plant in ("euler", "continuous")]
@@ -126,7 +126,7 @@ VDP_ELLIPSES = (Ellipse((-3.0, 0.75), (0.6, 0.25), 0.2), Ellipse((-0.5, 1.5), (0
 def vdp_ellipse_scenario(steps: int) -> Scenario:
     """The paper's van der Pol run (N = 5, mu = 1e8, Euler plant) among the 4 VDP_ELLIPSES."""
     s = with_capacity(ControllerSettings.from_params(_config("van_der_pol.yaml")), 4)
-    return Scenario("vdp_4_ellipses", s, make_model(s.model), np.array([-5.0, 0.0]), np.array([5.0]), steps,
+    return Scenario("vdp_4_ellipses", s, s.build_model(), np.array([-5.0, 0.0]), np.array([5.0]), steps,
                     "euler", lambda k: VDP_ELLIPSES if k == 0 else None)
 
 
@@ -134,9 +134,9 @@ def shipped_scenarios(steps: int) -> list[Scenario]:
     """The shipped configs as they are (their region capacities and ellipse tiers) among 4 ellipses."""
     vdp = ControllerSettings.from_params(_config("van_der_pol.yaml"))
     robot = ControllerSettings.from_params(_config("mobile_robot.yaml"))
-    return [Scenario("shipped/vdp_4_ellipses", vdp, make_model(vdp.model), np.array([-5.0, 0.0]), np.array([5.0]),
+    return [Scenario("shipped/vdp_4_ellipses", vdp, vdp.build_model(), np.array([-5.0, 0.0]), np.array([5.0]),
                      steps, "euler", lambda k: VDP_ELLIPSES if k == 0 else None),
-            Scenario("shipped/robot_4_ellipses", robot, make_model(robot.model), np.array([-8.0, -6.0, 0.0, 0.0]),
+            Scenario("shipped/robot_4_ellipses", robot, robot.build_model(), np.array([-8.0, -6.0, 0.0, 0.0]),
                      np.array([8.0, 6.0]), steps, "continuous", lambda k: ROBOT_ELLIPSES if k == 0 else None)]
 
 
@@ -156,7 +156,7 @@ def scaling_scenarios(horizons: Sequence[int], steps: int) -> list[Scenario]:
     out = []
     for N in horizons:
         s = robot_settings(N)
-        out.append(Scenario(f"scaling/N={N}", s, make_model(s.model), np.array([-8.0, -6.0, 0.0, 0.0]),
+        out.append(Scenario(f"scaling/N={N}", s, s.build_model(), np.array([-8.0, -6.0, 0.0, 0.0]),
                             np.array([8.0, 6.0]), steps, "continuous",
                             lambda k: ROBOT_ELLIPSES if k == 0 else None))
     return out
@@ -171,7 +171,7 @@ def moving_obstacle_scenario(steps: int) -> Scenario:
         moving = Ellipse((2.0 * math.cos(0.4 * t), -1.0 + 0.25 * t), (0.8, 0.6), 0.2 * t, "output")
         return [*ROBOT_ELLIPSES[:3], moving]
 
-    return Scenario("moving_obstacle", s, make_model(s.model), np.array([-8.0, -6.0, 0.0, 0.0]),
+    return Scenario("moving_obstacle", s, s.build_model(), np.array([-8.0, -6.0, 0.0, 0.0]),
                     np.array([8.0, 6.0]), steps, "continuous", regions)
 
 
@@ -183,7 +183,7 @@ def crossing_walker_scenario(steps: int) -> Scenario:
     """The shipped crossing-walker scene at N = 20: the walker where it is, with its velocity, every sample."""
     scene = load_scene(default_config_path().parent / "scenes" / "crossing_walker.yaml")
     s = robot_settings(20)
-    return Scenario("crossing_walker", s, make_model(s.model), np.array(scene.x0), np.array(scene.target_at(0.0)),
+    return Scenario("crossing_walker", s, s.build_model(), np.array(scene.x0), np.array(scene.target_at(0.0)),
                     steps, scene.plant, lambda k: scene.regions_at(k * s.sample_time))
 
 

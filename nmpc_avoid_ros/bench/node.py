@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 
 from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
-from ..core.problem.models import make_model
 from ..tools.processes import NodeProcess, isolated_env
 
 #: node parameters of the measured controller: the fast path, compiled, solving on each state
@@ -143,7 +142,7 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
     # the plant: the config's own prediction model, so that the controller's prediction holds
     settings = ControllerSettings.from_params({**load_params_file(config).section("controller"), **{
         k: v for k, v in parameters.items() if k in ("model", "discretization", "integration_steps")}})
-    model = make_model(settings.model)
+    model = settings.build_model()
     step = model.discrete(settings.sample_time, settings.discretization, settings.integration_steps)
     x = np.array([-5.0, 0.0])
     started = time.perf_counter()

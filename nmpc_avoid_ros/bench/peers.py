@@ -34,7 +34,7 @@ from ..core.config.settings import ControllerSettings
 from ..core.errors import ConfigError
 from ..core.nlp.tracking import BUDGET_EXHAUSTED, SOLVED  # the statuses that count as solved, or budget-cut
 from ..core.problem.expressions import parse_keep_in
-from ..core.problem.models import Model, make_model
+from ..core.problem.models import Model
 from ..core.problem.regions import Region, SlotLayout
 from ..core.sample.step_result import shifted_rows
 from .variants import Sample, StepperFactory
@@ -63,7 +63,7 @@ class ProblemPieces:
 
     def __init__(self, settings: ControllerSettings, model: Model | None = None) -> None:
         self.settings = s = settings
-        self.model = mdl = model or make_model(settings.model)
+        self.model = mdl = model or settings.build_model()
         for name, size in (("state_min", mdl.n), ("state_max", mdl.n), ("input_min", mdl.m),
                            ("input_max", mdl.m), ("state_weights", mdl.n), ("input_weights", mdl.m)):
             if len(getattr(s, name)) != size:

@@ -30,7 +30,7 @@ from ..core.config.settings import RUNTIME_FIELDS, SETTINGS, ControllerSettings
 from ..core.errors import ConfigError
 from ..core.loop.closed_loop import PLANT_INTEGRATIONS, ClosedLoopRun, Plant, integration_plant, run_closed_loop
 from ..core.loop.metrics import max_abs_product, outputs, penetration, time_stats, tracking
-from ..core.problem.models import make_model
+from ..core.problem.models import Model, make_model, parse_model_parameters
 from ..core.problem.regions import Region
 from ..core.sample.controller import NmpcController
 from ..core.sample.status import StepStatus
@@ -68,10 +68,15 @@ class PlantChoice:
     real_time: bool = False
     #: the recorded timing in one line (`timing` set), or why it could not be recovered (None: not asked)
     timing_note: str | None = None
+    #: the plant's model_parameters ('name=value'), as recorded (else the controller's)
+    model_parameters: tuple[str, ...] = ()
+
+    def make_model(self) -> Model:
+        return make_model(self.model, parse_model_parameters(self.model_parameters))
 
     def build(self, settings: ControllerSettings) -> Plant:
         """The core plant (ConfigError when its model does not fit the controller's state and input)."""
-        model, ctrl = make_model(self.model), make_model(settings.model)
+        model, ctrl = self.make_model(), settings.build_model()
         if (model.n, model.m) != (ctrl.n, ctrl.m):
             raise ConfigError(f"the plant's model {model.name} (n={model.n}, m={model.m}) does not fit the "
                               f"controller's {ctrl.name} (n={ctrl.n}, m={ctrl.m})")
@@ -126,7 +131,7 @@ def with_timing(choice: PlantChoice, bag: Bag, setup: RecordedSetup, run: Record
         choice.timing_note = (f"the plant added process noise (std {noise:g}) to every step: the recorded states "
                               "follow from no command timing")
         return
-    plant = integration_plant("continuous", make_model(choice.model), settings.sample_time)
+    plant = integration_plant("continuous", choice.make_model(), settings.sample_time)
     held = bool((setup.plant or {}).get("hold_until_command", True))
     timing, line = recorded_timing(bag, run, plant, 1.0 / rate, settings.sample_time, held)
     choice.timing = timing
@@ -134,6 +139,13 @@ def with_timing(choice: PlantChoice, bag: Bag, setup: RecordedSetup, run: Record
 
 
 def _plant_choice(bag: Bag, setup: RecordedSetup, settings: ControllerSettings, flag: str | None) -> PlantChoice:
+    choice = _plant_integration(bag, setup, settings, flag)
+    recorded = (setup.plant or {}).get("model_parameters")
+    choice.model_parameters = tuple(recorded or (() if setup.plant else settings.model_parameters))
+    return choice
+
+
+def _plant_integration(bag: Bag, setup: RecordedSetup, settings: ControllerSettings, flag: str | None) -> PlantChoice:
     plant = setup.plant or {}
     model = str(plant.get("model", settings.model))
     if flag is not None:
@@ -318,7 +330,7 @@ def replay_closed_loop(run: RecordedRun, settings: ControllerSettings, plant: st
 
 def loop_metrics(run: ClosedLoopRun, settings: ControllerSettings) -> dict[str, Any]:
     """COMPARED metrics of a driven run (definitions: core/loop/metrics.py), the target being the last one."""
-    model = make_model(settings.model)
+    model = settings.build_model()
     y = outputs(model, run.x, run.u)
     target = run.targets[-1]
     out: dict[str, Any] = dict.fromkeys(COMPARED)

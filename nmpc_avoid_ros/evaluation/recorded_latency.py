@@ -22,7 +22,6 @@ import numpy as np
 from ..bag.analysis import RecordedRun, controller_samples
 from ..bag.mcap_io import Bag
 from ..core.config.settings import ControllerSettings
-from ..core.problem.models import make_model
 from ..core.sample.latency import LatencyPrediction
 
 #: m.s.: a refined delay is taken when it carries the measured state to `planned_state` this closely
@@ -79,7 +78,7 @@ def recorded_latency(bag: Bag, run: RecordedRun, settings: ControllerSettings) -
                                "compensation: the controller planned from the measured state, as the replay does)")
     missing = sum("predicted_delay_ms" not in v for v in samples)
     delays = [float(v.get("predicted_delay_ms", "0")) * 1e-3 for v in samples]
-    prediction = LatencyPrediction(make_model(settings.model), settings)
+    prediction = LatencyPrediction(settings.build_model(), settings)
     refined = 0
     for k in range(1, K):
         x, planned = _vector(samples[k], "state"), _vector(samples[k], "planned_state")

@@ -52,7 +52,7 @@ from std_msgs.msg import Float64MultiArray
 from ..core.config.settings import INTERFACES
 from ..core.errors import ConfigError, InputError
 from ..core.loop.closed_loop import ContinuousPlant, DiscretePlant
-from ..core.problem.models import make_model
+from ..core.problem.models import make_model, parse_model_parameters
 from ..ros.conversions import array_to_vector, vector_to_array
 from ..ros.parameters import LATCHED_QOS, LATEST_QOS, STREAM_QOS, ParamSpec, declare, finite_vector
 from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command, yaw_quaternion
@@ -66,6 +66,9 @@ STILL_SPEED = 1e-3
 PLANT_SPECS = [
     ParamSpec("model", "van_der_pol", "model to simulate: a shipped or registered model's name, or a model file's "
               "path (docs/own_model.md)", ParameterType.PARAMETER_STRING, read_only=True),
+    ParamSpec("model_parameters", None, "values of the model file's parameters, 'name=value' each (e.g. "
+              "'wheelbase=0.6'): the simulated robot may differ from the controller's model; unset: the file's",
+              ParameterType.PARAMETER_STRING_ARRAY, read_only=True),
     ParamSpec("initial_state", None, "initial state x0 (n values; default zeros)", ParameterType.PARAMETER_DOUBLE_ARRAY,
               read_only=True),
     ParamSpec("sample_time", 0.5, "lockstep: time advanced per command, s", ParameterType.PARAMETER_DOUBLE,
@@ -133,7 +136,7 @@ class PlantNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("plant", **kwargs)
         values = declare(self, PLANT_SPECS)
-        self.model = make_model(values["model"])
+        self.model = make_model(values["model"], parse_model_parameters(values["model_parameters"] or ()))
         n = self.model.n
         self.x = np.zeros(n) if values["initial_state"] is None else \
             np.asarray(finite_vector(values["initial_state"], n, "initial_state"))

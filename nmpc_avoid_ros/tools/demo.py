@@ -30,7 +30,6 @@ from ..core.config.settings import default_config_path, load_params_file
 from ..core.errors import NmpcError
 from ..core.loop.closed_loop import ClosedLoopRun, run_closed_loop
 from ..core.loop.metrics import max_abs_product, outputs, tracking
-from ..core.problem.models import make_model
 from ..core.sample.controller import NmpcController
 from ..core.sample.status import StepStatus
 from ..evaluation.counterfactual import PlantChoice
@@ -177,7 +176,7 @@ def run_demo(out: Path, config: Path, steps: int, lockstep: bool, timeout: float
         x = np.array(data["x"])
         plant = run_plant(config, lockstep)
         offline, offline_summary = offline_reference(load_scenario(config, steps=steps, mu=run_mu), plant)
-        model = make_model(scenario.settings.model)
+        model = scenario.settings.build_model()
         quality = tracking(outputs(model, x, np.array(data["u"])), scenario.target, scenario.settings.sample_time)
         summary = {
             "mu": run_mu,

@@ -26,7 +26,6 @@ from ..core.config.settings import ControllerSettings
 from ..core.loop.closed_loop import max_abs_product, run_closed_loop, settling_step
 from ..core.nlp.terminal import terminal_ingredients
 from ..core.nlp.tracking import SOLVED, TrackingNlp
-from ..core.problem.models import make_model
 from ..core.sample.controller import NmpcController
 
 X0 = np.array([-5.0, 0.0])
@@ -150,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     settings = ControllerSettings(terminal="set")
     start = time.perf_counter()
-    ingredients = terminal_ingredients(settings, make_model(settings.model))
+    ingredients = terminal_ingredients(settings, settings.build_model())
     records: dict = {"ingredients": {"seconds": ingredients.seconds, "cache": ingredients.cache,
                                      "lookup_seconds": time.perf_counter() - start, "margin": ingredients.margin,
                                      "y_range": [ingredients.y_low, ingredients.y_high],

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigError
-from ..problem.models import DISCRETISATIONS, check_model_name, model_bounds
+from ..problem.models import DISCRETISATIONS, Model, check_model_name, make_model, model_bounds, parse_model_parameters
 
 # the params-file readers live in params_file.py; the tools and tests import them from here too
 from .params_file import NAMESPACE_WILDCARDS, ParamsFile, default_config_path, load_params_file, params_file_node  # noqa: F401
@@ -55,6 +55,9 @@ class ControllerSettings:
     model: str = setting("van_der_pol", "plant model of the prediction: a shipped model (van_der_pol, "
                          "double_integrator_2d, unicycle, unicycle_pose, bicycle), one a package registers, or the "
                          "path of a model file (docs/own_model.md)")
+    model_parameters: tuple[str, ...] = setting(
+        (), "values of the model file's parameters, 'name=value' each (e.g. 'wheelbase=0.6'); the file's defaults "
+            "for the rest; a parameter the file does not declare is refused")
     sample_time: float = setting(0.5, "sample time Ts of the controller and of the discretisation, s",
                                  low=0.0, low_open=True)
     horizon: int = setting(5, "prediction horizon N (samples)", low=1, high=2000)  # an upper limit keeps
@@ -210,7 +213,7 @@ class ControllerSettings:
         normalise(self)
         unset = [name for name in BOUNDS if getattr(self, name) is None]
         if unset:  # Z's box from the model file (the paper's |x1| <= 6, |x2| <= 2, |u| <= 6 for van der Pol)
-            declared = model_bounds(self.model)
+            declared = model_bounds(self.model, self.model_parameters)
             for name in unset:
                 if name not in declared:
                     raise ConfigError(f"{name} is unset and model {self.model} declares no bounds: set it")
@@ -226,6 +229,8 @@ class ControllerSettings:
     def _check_relations(self) -> None:
         """What one setting's declaration cannot say: relations between values."""
         check_model_name(self.model)
+        if self.model_parameters:  # a parameter the model does not declare: refused now, not at the first build
+            model_bounds(self.model, self.model_parameters)
         for lo_name, hi_name in (("state_min", "state_max"), ("input_min", "input_max")):
             lo, hi = getattr(self, lo_name), getattr(self, hi_name)
             if len(lo) != len(hi):
@@ -246,6 +251,10 @@ class ControllerSettings:
             plane = getattr(self, name)
             if plane[0] == plane[1]:
                 raise ConfigError(f"{name} must be two different non-negative indices, got {plane}")
+
+    def build_model(self) -> Model:
+        """The model these settings name, with their model_parameters (core/problem/models.py make_model)."""
+        return make_model(self.model, parse_model_parameters(self.model_parameters))
 
     @property
     def body_radius(self) -> float:

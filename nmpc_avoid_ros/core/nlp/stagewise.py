@@ -33,7 +33,7 @@ import numpy as np
 
 from ..config.settings import ControllerSettings
 from ..errors import ConfigError
-from ..problem.models import Model, make_model
+from ..problem.models import Model
 from .between import between_samples, worst_of
 from .parts import check_sizes, depth_function, problem_parts
 from .terminal import terminal_constraint
@@ -91,7 +91,7 @@ class StagewiseNlp(NlpBase):
 
     def __init__(self, settings: ControllerSettings, model: Model | None = None) -> None:
         self.settings = settings
-        self.model = model or make_model(settings.model)
+        self.model = model or settings.build_model()
         check_sizes(settings, self.model)
         if settings.input_rate_max:
             raise ConfigError(f"input_rate_max couples the stages' inputs, which solver {settings.solver!r} does not "
@@ -270,7 +270,7 @@ def make_nlp(settings: ControllerSettings, model: Model | None = None) -> NlpBas
     """The formulation of the settings' solver path: multiple shooting (ipopt) or stage-wise."""
     if settings.solver == "ipopt":
         return TrackingNlp(settings, model)
-    model = model or make_model(settings.model)
+    model = model or settings.build_model()
     if model.steady_state is None:
         # the stage-wise paths carry y_a as a state and need x_a = g_x(y_a) in closed form
         raise ConfigError(f"solver {settings.solver!r} needs a closed-form steady state, which model "

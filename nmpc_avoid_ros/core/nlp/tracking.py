@@ -32,7 +32,7 @@ import numpy as np
 
 from ..config.settings import SOLVERS, ControllerSettings
 from ..errors import ConfigError
-from ..problem.models import Model, make_model
+from ..problem.models import Model
 from . import background
 from .between import between_samples, worst_of
 from .buffered import Buffered
@@ -185,7 +185,7 @@ class TrackingNlp(NlpBase):
 
     def __init__(self, settings: ControllerSettings, model: Model | None = None) -> None:
         self.settings = settings
-        self.model = model or make_model(settings.model)
+        self.model = model or settings.build_model()
         self._check_sizes()
         self._build()
 

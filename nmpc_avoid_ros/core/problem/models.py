@@ -7,13 +7,15 @@
   the entry point is a callable returning a `Model` or the path of a model file (docs/own_model.md);
 - the path of a model file (ends in .yaml or .yml; relative paths from the working directory).
 
+A model file's `parameters` take their defaults unless a config's `model_parameters` ('name=value') override them.
 Each call builds the model afresh (a few milliseconds): nothing CasADi holds is shared between controllers.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Iterable, Mapping
 from importlib import metadata
 from pathlib import Path
 
@@ -22,7 +24,8 @@ from .model import DISCRETISATIONS, Model, PlanarMap, unicycle_turn_guess
 from .model_files import ModelFileError, load_model_file
 
 __all__ = ["DISCRETISATIONS", "MODELS", "ENTRY_POINT_GROUP", "Model", "ModelFileError", "PlanarMap", "check_model_name",
-           "make_model", "model_bounds", "model_names", "unicycle_turn_guess"]
+           "make_model", "model_bounds", "model_names", "parse_model_parameters",
+           "unicycle_turn_guess"]
 
 #: the shipped model files
 MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
@@ -69,14 +72,34 @@ def check_model_name(name: str) -> Path:
     return path.resolve()
 
 
-def make_model(name: str) -> Model:
-    """The model a config names (shipped, registered or a file path); ConfigError naming what is known, a
-    ModelFileError (file:line: cause) for a file that is wrong."""
+def parse_model_parameters(items: Iterable[str]) -> dict[str, float]:
+    """'name=value' strings (a config's model_parameters) as {name: value}; ConfigError naming a malformed one."""
+    values: dict[str, float] = {}
+    for item in items:
+        name, sep, text = str(item).partition("=")
+        name = name.strip()
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not sep or not name.isidentifier() or not math.isfinite(value):
+            raise ConfigError(f"model_parameters: {item!r} is not 'name=value' with a finite number "
+                              f"(e.g. 'wheelbase=0.6')")
+        if name in values:
+            raise ConfigError(f"model_parameters: {name!r} given twice")
+        values[name] = value
+    return values
+
+
+def make_model(name: str, parameters: Mapping[str, float] | None = None) -> Model:
+    """The model a config names (shipped, registered or a file path), with `parameters` overriding the defaults
+    of its model file; ConfigError naming what is known, a ModelFileError (file:line: cause) for a file that is
+    wrong (an undeclared parameter included)."""
     resolved = check_model_name(name)
     if is_model_file(name):
-        return load_model_file(resolved)
+        return load_model_file(resolved, parameters)
     if name in MODELS:
-        return MODELS[name]()
+        return load_model_file(MODEL_DIR / f"{name}.yaml", parameters)
     entry = _registered()[name]
     try:
         made = entry.load()()
@@ -86,21 +109,25 @@ def make_model(name: str) -> Model:
         raise ConfigError(f"model {name!r} registered by {entry.value!r} failed: {type(exc).__name__}: {exc}") \
             from None
     if isinstance(made, (str, Path)):
-        return load_model_file(made)
+        return load_model_file(made, parameters)
     if not isinstance(made, Model):
         raise ConfigError(f"model {name!r} registered by {entry.value!r} returned {type(made).__name__}, "
                           f"not a Model or a model file path")
+    if parameters:
+        raise ConfigError(f"model {name!r} registered by {entry.value!r} is built in Python: it takes no "
+                          f"model_parameters (got {sorted(parameters)})")
     return made
 
 
-def model_bounds(name: str) -> dict[str, tuple[float, ...]]:
-    """The bounds of Z a model declares (state_min, state_max, input_min, input_max, as far as it does): a config's
-    defaults. Cached per name (and a file's modification time): settings are built often, a model is parsed once."""
+def model_bounds(name: str, parameters: Iterable[str] = ()) -> dict[str, tuple[float, ...]]:
+    """The bounds of Z a model declares (state_min, state_max, input_min, input_max, as far as it does), with the
+    'name=value' `parameters`: a config's defaults. Cached per name, parameters (and a file's modification time):
+    settings are built often, a model is parsed once."""
     resolved = check_model_name(name)
     stamp = resolved.stat().st_mtime_ns if is_model_file(name) else 0
-    return dict(_bounds(name, stamp))
+    return dict(_bounds(name, tuple(parameters), stamp))
 
 
 @functools.lru_cache(maxsize=128)
-def _bounds(name: str, _stamp: int) -> tuple[tuple[str, tuple[float, ...]], ...]:
-    return tuple(make_model(name).bounds.items())
+def _bounds(name: str, parameters: tuple[str, ...], _stamp: int) -> tuple[tuple[str, tuple[float, ...]], ...]:
+    return tuple(make_model(name, parse_model_parameters(parameters)).bounds.items())

@@ -22,7 +22,7 @@ from ...core.errors import ConfigError
 from ...core.loop.metrics import keep_in_values, region_depth
 from ...core.nlp.projection import TargetProjection
 from ...core.problem.expressions import parse_keep_in
-from ...core.problem.models import Model, make_model
+from ...core.problem.models import Model
 from ...core.problem.regions import Region
 
 #: numerical slack of the lambda * Z test of a candidate steady state (the projection's accuracy)
@@ -159,7 +159,7 @@ def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]
     for region in regions:
         free &= region_depth(region, np.vstack([X1, X2])) <= 0
     if settings is not None and settings.keep_in:
-        points, model = np.column_stack([X1, X2]), make_model(settings.model)
+        points, model = np.column_stack([X1, X2]), settings.build_model()
         keep = keep_in_values(settings, model, points, np.zeros((len(points), model.m)))
         free &= np.all(keep + settings.keep_in_margin <= 0, axis=1)
     return bool(np.all(free.reshape(x1.size, frac.size).any(axis=1)))

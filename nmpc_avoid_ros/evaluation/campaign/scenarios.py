@@ -26,7 +26,7 @@ import numpy as np
 from ...core.config.settings import ControllerSettings, default_config_path, load_params_file
 from ...core.loop.closed_loop import RegionSchedule
 from ...core.loop.metrics import keep_in_values
-from ...core.problem.models import Model, make_model
+from ...core.problem.models import Model
 from ...core.problem.regions import Ellipse, Region
 from .reachability import planar_passage, vdp_passage
 from .world import score_world, summarize_world, world_scenario
@@ -257,7 +257,7 @@ def settings_from_params(params: Mapping[str, Any], max_solve_time: float | None
 
 def make_specs(fam: Family, count: int, seed: int, settings: ControllerSettings, plant: str) -> list[dict[str, Any]]:
     """Scenario specs 0..count-1 of one family (ids '<family>-0000', ...), reproducible from seed."""
-    model = make_model(settings.model)
+    model = settings.build_model()
     specs = []
     for i in range(count):
         rng = np.random.default_rng([seed, fam.code, i])
