@@ -21,13 +21,16 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 demo: $(STAMP)
 	$(BIN)/python -m nmpc_avoid_ros demo --out $(OUT)
 
-# everything: the tests that talk DDS (real nodes, real time) on one process, the rest (offline, ~950 tests) on two
-# (pytest-xdist): 3.6 min instead of ~7; with PYTEST_ARGS (a file, -k ...) one process runs what they select
+# everything, on two processes (pytest-xdist): the offline tests (~950: 3.6 min instead of ~7), then the tests that
+# talk DDS (real nodes; each worker its own block of domain ids, test/conftest.py: ~9 min instead of ~16), then the
+# few DDS tests marked serial (their verdict is a real-time one that a test beside them would disturb) alone;
+# with PYTEST_ARGS (a file, -k ...) one process runs what they select
 test: $(STAMP)
 	$(BIN)/ruff check nmpc_avoid_ros test
 ifeq ($(strip $(PYTEST_ARGS)),)
 	$(BIN)/python -m pytest -n 2 -m "not dds"
-	$(BIN)/python -m pytest -m dds
+	$(BIN)/python -m pytest -n 2 -m "dds and not serial"
+	$(BIN)/python -m pytest -m "dds and serial"
 else
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 endif

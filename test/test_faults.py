@@ -62,6 +62,7 @@ def wait(listen: Listener, what: str, done, timeout: float, *procs) -> float:
 # kill -9 and restart, each node in turn
 
 
+@pytest.mark.serial  # judges the second plant over a window of real time: alone on the machine
 def test_kill_9_and_restart_plant_controller_and_recorder_in_turn(ros_graph, tmp_path):
     _, _, start, probe = ros_graph
     p = probe()

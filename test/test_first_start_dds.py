@@ -27,7 +27,8 @@ from std_msgs.msg import Float64MultiArray
 
 from nmpc_avoid_ros.nodes.controller_io import COMMAND_QOS
 
-pytestmark = [pytest.mark.dds, pytest.mark.slow]
+# a start within seconds of real time (send's 1 s, the first command's bound): alone on the machine
+pytestmark = [pytest.mark.dds, pytest.mark.slow, pytest.mark.serial]
 
 CONFIG = ROOT / "config" / "van_der_pol_fast.yaml"
 BIGGER = ["-p", "horizon:=40", "-p", "discretization:=rk4"]

@@ -163,6 +163,7 @@ def test_deactivate_mid_solve_is_honoured_within_a_second_then_activate_serves_a
     assert code == 0
 
 
+@pytest.mark.serial  # the gaps between commands in real time: alone on the machine
 def test_a_late_sample_is_covered_by_the_plans_next_inputs(ros_graph):
     """Timer mode, a plan in force; then the long solve's regions and state: that step takes ~4 s
     (abandoned at 0.8 max_solve_time, measured offline: 4.04 s). Meanwhile the node's late cover

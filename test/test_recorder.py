@@ -429,6 +429,7 @@ LOAD_RATE = 400.0  # per topic, Hz: 1.2 kHz in total on 3 topics
 
 @pytest.mark.slow
 @pytest.mark.dds
+@pytest.mark.serial  # a throughput: alone on the machine
 def test_load_1200_messages_per_second_for_30_s_loses_nothing(ros_graph, recorder, tmp_path):
     _domain, _env, _start, probe = ros_graph
     p = probe()

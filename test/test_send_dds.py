@@ -64,6 +64,7 @@ def test_send_refuses_bad_arguments_with_exit_2_before_any_dds(ros_graph) -> Non
 
 
 @pytest.mark.slow
+@pytest.mark.serial  # clearance in real time: alone on the machine
 def test_the_readme_sequence_through_send_arrives_and_the_live_loop_keeps_the_ellipse_clear(ros_graph,
                                                                                           tmp_path) -> None:
     _, env, start, probe_factory = ros_graph

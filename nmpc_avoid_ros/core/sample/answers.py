@@ -9,7 +9,7 @@ import numpy as np
 
 from ..nlp.search import Candidate, SearchReport
 from ..nlp.tiers import TieredNlp
-from .memory import Sample
+from .memory import COUNTED, RESET, Sample
 from .status import StepStatus
 from .step_result import Plan, StepResult
 
@@ -22,20 +22,20 @@ class SampleAnswers:
 
     def _apply(self, sample: Sample, best: Candidate, report: SearchReport) -> StepResult:
         """Keep `best` as the plan and answer its first input (status ok, or truncated for a budget-cut one)."""
-        mem = self.memory
-        mem.pending, mem.reseed = None, False
+        carry = sample.carry
+        carry.pending, carry.reseed = None, False
         report.kept = report.kept or best.label
-        active = self.active_nlp
+        active = self._active(carry)
         lam_x, lam_g = best.lam_x, best.lam_g
         if best.nlp is not active:  # solved by another NLP (the reference, a tier): multipliers start from zero
             lam_x, lam_g = np.zeros(active.layout.n_w), np.zeros(active.lbg.size)
         U, X, y_a, _ = best.nlp.layout.split_w(best.w)
         x_a, u_a = (v.copy() for v in best.nlp.steady(best.w))
         costs = tuple(float(c[0]) for c in best.nlp.terms(best.w, sample.par))
-        mem.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
+        carry.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
         regular = sample.regular
         status = StepStatus.OK if best.solved else StepStatus.TRUNCATED if best.budget_cut else StepStatus.UNCONVERGED
-        result = self._result(mem.plan, sample.x, 0, status, regular.solver_status, regular.iterations,
+        result = self._result(carry.plan, sample.x, 0, status, regular.solver_status, regular.iterations,
                               regular.budget_cut)
         result.horizon = best.nlp.layout.horizon
         return result
@@ -47,7 +47,7 @@ class SampleAnswers:
         choosing does not hold the plant still for good. When even that input penetrates the regions as
         planned around (inflated by the margins), the choice is made again against the regions themselves:
         only if they cannot be avoided either is it `region_unavoidable` (else `margin_unavoidable`)."""
-        mem, H = self.memory, self.fallback.horizon
+        mem, H = self.memory, self.fallback.horizon  # mem.overrides: as the sample began; the count is the carry's
         if not (self.settings.mu > 0 and not best.clear):
             return result
         choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end)
@@ -64,7 +64,7 @@ class SampleAnswers:
                     return result
                 choice = real
         if choice is None or (not choice.unavoidable and mem.overrides >= self.nlp.layout.horizon):
-            mem.overrides = 0
+            sample.carry.overrides = RESET
             return result
         result.region_unavoidable = choice.unavoidable
         result.predicted_violation = choice.violation
@@ -74,7 +74,7 @@ class SampleAnswers:
             result.fallback_reason = f"{why}; {choice.reason}"
         sample.seconds += choice.solve_time
         if choice.kind != "plan":
-            mem.overrides += not choice.unavoidable
+            sample.carry.overrides = "" if choice.unavoidable else COUNTED
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
         return result
@@ -87,27 +87,27 @@ class SampleAnswers:
         """No usable plan: the candidate input predicting the least violation (core/sample/fallback.py); the plan
         ages by one. A budget-cut iterate of the regular NLP is continued next sample; a fast path whose
         warm solve failed outright re-seeds through the cold-start starts."""
-        mem, x, par = self.memory, sample.x, sample.par
+        carry, x, par = sample.carry, sample.x, sample.par
         if last is not None:
             regular = last.nlp.regular if isinstance(last.nlp, TieredNlp) else last.nlp
-            mem.pending = (last.w, last.lam_x, last.lam_g) if (
-                last.finite and last.budget_cut and regular is self.active_nlp) else None
-            mem.reseed = self.cold_nlp is not None and mem.pending is None and not mem.passage
+            carry.pending = (last.w, last.lam_x, last.lam_g) if (
+                last.finite and last.budget_cut and regular is self._active(carry)) else None
+            carry.reseed = self.cold_nlp is not None and carry.pending is None and not carry.passage
         status, iterations, budget_cut = (OUTSIDE_SOLVE_DOMAIN, 0, False) if last is None else (
             last.solver_status, last.iterations, last.budget_cut)
-        plan = mem.plan
+        plan, carry.aged = carry.plan, True  # no plan kept: it ages by this sample
         shifted = u_a = None
         N = H = self.fallback.horizon  # the selector simulates N inputs: of a long plan, its first N
+        age = 0 if plan is None else plan.age + 1
         if plan is not None:
-            plan.age += 1
             N = len(plan.inputs)
-            shifted = plan.shifted(plan.age)[0][:H]
+            shifted = plan.shifted(age)[0][:H]
             u_a = plan.u_a
-        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and plan.age < N, sample.in_domain,
+        choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and age < N, sample.in_domain,
                                       sample.end)
         sample.seconds += choice.solve_time
         if plan is not None and choice.kind in ("shift", "steady"):
-            result = self._result(plan, x, plan.age, StepStatus(f"fallback_{choice.kind}"), status, iterations,
+            result = self._result(plan, x, age, StepStatus(f"fallback_{choice.kind}"), status, iterations,
                                   budget_cut)
         else:
             nan_p = np.full(self.model.p, np.nan) if plan is None else plan.y_a.copy()
@@ -139,14 +139,16 @@ class SampleAnswers:
         Status FALLBACK_SHIFT (or FALLBACK_STEADY once the plan is used up), solver status
         'no_new_state'.
         """
-        plan = self.memory.plan
-        self.memory.prepared = None  # prepared for the sample this one replaces
+        carry = self.memory.carry()
+        carry.prepared = None  # prepared for the sample this one replaces
+        plan = carry.plan
         if plan is None:
+            self.memory.advance(carry)
             return None
-        plan.age += 1
-        N = len(plan.inputs)
-        predicted = plan.states[plan.age] if plan.age <= N else plan.x_a
-        status = StepStatus.FALLBACK_SHIFT if plan.age < N else StepStatus.FALLBACK_STEADY
-        result = self._result(plan, predicted, plan.age, status, "no_new_state", 0, False)
-        self.memory.command = result.u.copy()
+        age, N = plan.age + 1, len(plan.inputs)
+        predicted = plan.states[age] if age <= N else plan.x_a
+        status = StepStatus.FALLBACK_SHIFT if age < N else StepStatus.FALLBACK_STEADY
+        result = self._result(plan, predicted, age, status, "no_new_state", 0, False)
+        carry.command, carry.aged = result.u.copy(), True
+        self.memory.advance(carry)
         return result

@@ -146,7 +146,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
     @property
     def active_nlp(self) -> NlpBase:
         """The NLP of the regular solve: the passage mode's long one while in it, else the solver path's."""
-        return self.passage.nlp if self.memory.passage and self.passage.nlp is not None else self.nlp
+        return self._active(self.memory)
 
     def nlp_of_horizon(self, horizon: int) -> NlpBase | None:
         """The regular or the passage NLP whose horizon is `horizon` (None if neither)."""
@@ -170,13 +170,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         """The next step's time bound, s: max_solve_time, or for a cold start (no plan yet, or a re-seed
         through the cold-start solvers) COLD_START_TIME_FACTOR times it. The search's solver calls end by
         SEARCH_SHARE of it (core/nlp/worker.py), the fallback's recovery solve within the rest."""
-        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if self._cold() else 1.0)
-
-    def _cold(self) -> bool:
-        """The next sample starts cold: a fast path without a plan (or re-seeding), nothing to continue."""
-        mem = self.memory
-        return self.cold_nlp is not None and mem.pending is None and (mem.plan is None or mem.reseed) and \
-            not mem.passage
+        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if self._cold(self.memory) else 1.0)
 
     def reset(self) -> None:
         """Forget everything carried between samples (the next step starts cold)."""
@@ -212,16 +206,14 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         Raises InputError for a wrong-size or non-finite x or y_t and RegionError for regions that
         do not fit; the controller's state is unchanged then.
         """
-        mem = self.memory
         searched = latency if search_latency is None else search_latency
-        prepared = mem.prepared
+        prepared = self.memory.prepared
         sample = self._prepare(x, y_t, regions, time, searched if prepared is None else latency, command)
-        mem.prepared = None
         result = None if prepared is None else self._feedback(sample, prepared)
         if result is None:
             if prepared is not None:  # the law did not hold: the mismatch now, and a searched sample's latency
                 outcome = sample.feedback
-                sample = self._prepare(x, y_t, None, time, searched, command)
+                sample = self._prepare(x, y_t, None, time, searched, command, prepared_used=True)
                 sample.feedback = outcome
             result = self._solve(sample)
         if prepared is not None:
@@ -229,7 +221,9 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         result.target = sample.y_t
         result.solve_time = sample.seconds + result.preparation_time
         result.delay, result.measured_state = sample.delay, sample.measured
-        mem.command, mem.last = result.u.copy(), sample
+        carry = sample.carry
+        carry.command, carry.last, carry.prepared = result.u.copy(), sample, None
+        self.memory.advance(carry)
         sample.settled = result.feedback is not FeedbackOutcome.ANSWERED
         if sample.settled:
             self._expect(sample)
@@ -279,12 +273,13 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         sample = self._sample(x, last.y_t, start, begin, measured=x, delay=delay, command=mem.command)
         if not (sample.in_domain and np.all(np.isfinite(x))):
             return None
-        report = SearchReport()
+        report, carry = SearchReport(), sample.carry
         best = self._search_within(sample, report)[0]
         if best is None:
+            mem.advance(carry)  # what the search found (escape and passage guesses tried, a hand-back)
             return None
         self._apply(sample, best, report)
-        nlp = self.active_nlp
+        nlp = self._active(carry)
         # an unconverged plan (e.g. FATROP stopped at an acceptable point) gets a law where its KKT residual allows
         # (with mu = 0 nothing is avoided: a penetrating plan is the problem's answer, as the guard holds)
         # the law is built after a search that left half a sample at least (it takes ~2-30 ms: the next sample
@@ -292,14 +287,15 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         if clock.perf_counter() - begin > LAW_TIME_SHARE * s.sample_time:
             law = "no time left in the sample for the law"
         elif best.clear or s.mu == 0:
-            law = self.feedback_laws.prepare(nlp, mem.plan, sample.par)
+            law = self.feedback_laws.prepare(nlp, carry.plan, sample.par)
         else:
             law = "the prepared plan penetrates"
-        mem.plan.age = -1  # the plan of the sample to come
+        carry.plan.age = -1  # the plan of the sample to come
         ready = not isinstance(law, str)
         costs = self.feedback_laws.costs(nlp, law.w, sample.par) if ready else None
-        mem.prepared = Prepared(mem.plan, nlp, law if ready else None, "" if ready else law, x, start, delay,
-                                clock.perf_counter() - begin, costs, report)
+        carry.prepared = Prepared(carry.plan, nlp, law if ready else None, "" if ready else law, x, start, delay,
+                                  clock.perf_counter() - begin, costs, report)
+        mem.advance(carry)
         return mem.prepared
 
     def _feedback(self, sample: Sample, prepared: Prepared) -> StepResult | None:
@@ -317,9 +313,9 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         U, X, y_a, _ = nlp.layout.split_w(w)
         x_a, u_a = (v.copy() for v in nlp.steady(w))
         costs = plan.costs if prepared.costs is None else prepared.costs.at(w, sample.par)  # the certificate's V_N
-        self.memory.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, plan.lam_x, plan.lam_g,
-                                0, costs)
-        result = self._result(self.memory.plan, sample.x, 0, StepStatus.OK, ANSWERED_STATUS, 0, False)
+        sample.carry.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, plan.lam_x, plan.lam_g,
+                                 0, costs)
+        result = self._result(sample.carry.plan, sample.x, 0, StepStatus.OK, ANSWERED_STATUS, 0, False)
         result.horizon, result.feedback = nlp.layout.horizon, outcome
         # what was searched for this sample, ahead of it (escapes and passage included: the campaign counts them)
         result.search = prepared.report or SearchReport(phase="feedback", kept="prepared")
@@ -348,9 +344,11 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         self.memory.mismatch.acts_at(at + self.settings.input_delay, self.latency.advance)
 
     def _prepare(self, x: Sequence[float], y_t: Sequence[float], regions: Sequence[Region] | None,
-                 time: float | None, latency: float, command: Sequence[float] | None) -> Sample:
+                 time: float | None, latency: float, command: Sequence[float] | None,
+                 prepared_used: bool = False) -> Sample:
         """Validate, predict x over the latency, project the target, pack the parameters and set the solver
-        calls' deadline (`_sample`)."""
+        calls' deadline (`_sample`). `prepared_used`: the prepared plan was tried for this state (its law did not
+        hold): the sample is searched, the mismatch measured now."""
         begin = clock.perf_counter()
         measured = validate_vector("state", x, self.model.n)
         y_t = validate_vector("target", y_t, self.model.p)
@@ -361,7 +359,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         if regions is not None:
             self.set_regions(regions)
         self._settle()
-        if self.memory.prepared is None:  # else after the command (`_settle`): the prepared plan has its margin
+        # else after the command (`_settle`): the prepared plan has its margin
+        if self.memory.prepared is None or prepared_used:
             self._track_mismatch(measured, time)
         x = self.latency.advance(measured, in_force, delay) if delay > 0 else measured
         if not np.all(np.isfinite(x)):  # the prediction overflowed (a state far outside Z): plan from x itself
@@ -382,7 +381,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         budget, par = self.sample_budget(), self.parameters(x, y_t, start)
         return Sample(x, y_t, par, start, begin + SEARCH_SHARE * budget, begin + budget, self.in_solve_domain(x),
                       measured=measured, delay=delay, command=command, begin=begin,
-                      allowance=self.fallback.allowance(x, command, par))
+                      allowance=self.fallback.allowance(x, command, par), carry=self.memory.carry())
 
     def set_safe_input(self, u: Sequence[float]) -> None:
         """The model's safe input [m], a fallback candidate (InputError if malformed or outside the input box)."""

@@ -1,5 +1,11 @@
 """The sample's records: what carries over to the next sample (SampleMemory, replaced whole by
-`NmpcController.reset`) and what one sample works on (Sample)."""
+`NmpcController.reset`), what one sample works on (Sample) and what it leaves for the next (Carry).
+
+The memory is written by one function, `SampleMemory.advance`, at the end of each `step`, `prepare` and
+`coast`: the sample's phases read the memory as it was when the sample began and record what they found in
+the sample's Carry (the plan they kept, the iterate to continue, the passage mode, what became of the
+escape and passage guesses, an override); `advance` turns that into the memory of the next sample, so that
+the rules of what carries over read in one place."""
 
 from __future__ import annotations
 
@@ -53,6 +59,73 @@ class SampleMemory:
     last: Sample | None = None
     prepared: Prepared | None = None
 
+    def carry(self) -> Carry:
+        """A sample's working copy of what it may change, as the memory holds it now."""
+        return Carry(self.plan, self.pending, self.reseed, self.passage, self.command, self.last, self.prepared)
+
+    def advance(self, carry: Carry) -> None:
+        """The one writer of the memory: what the sample left in `carry` becomes the memory of the next sample."""
+        self.plan, self.pending, self.reseed, self.passage = carry.plan, carry.pending, carry.reseed, carry.passage
+        self.command, self.last, self.prepared = carry.command, carry.last, carry.prepared
+        if carry.aged and self.plan is not None:  # no plan kept: the last one ages by the sample
+            self.plan.age += 1
+        if carry.waited:  # stalled, inside the wait after a vain escape: one sample of it spent
+            self.escape_wait -= 1
+        if carry.escape:  # the escape's guesses were solved
+            self.escape_next = carry.escape_next if carry.escape == MORE else 0
+            if carry.escape == VAIN:  # nothing better at a stall: wait, and try the long horizon next sample
+                self.escape_wait = ESCAPE_RETRY_SAMPLES
+                self.passage_due, self.passage_next = carry.passage_available, 0
+        if carry.passage_try:  # a passage try was due: it is done, or its next batch due
+            self.passage_due = carry.passage_try == MORE
+            if carry.passage_try != NOT_STALLED:
+                self.passage_next = carry.passage_next if carry.passage_try == MORE else 0
+            if carry.passage_try == VAIN:
+                self.escape_wait = ESCAPE_RETRY_SAMPLES
+        if carry.overrides == RESET:
+            self.overrides = 0
+        elif carry.overrides == COUNTED:
+            self.overrides += 1
+
+
+#: what became of a sample's escape or passage guesses (Carry.escape, Carry.passage_try)
+MORE, VAIN, DONE, ENTERED, NOT_STALLED = "more", "vain", "done", "entered", "not_stalled"
+#: what a sample did to the count of overridden penetrating plans (Carry.overrides)
+RESET, COUNTED = "reset", "counted"
+#: samples without a new escape attempt after one that found no better plan (the scene is static)
+ESCAPE_RETRY_SAMPLES = 10
+
+
+@dataclass
+class Carry:
+    """What one sample leaves for the next (SampleMemory.advance turns it into the memory).
+
+    The sample's working state, begun as the memory's (SampleMemory.carry) and changed by its phases:
+    plan (a kept or answered plan replaces it; a passage hand-back shortens it), pending (the budget-cut
+    iterate to continue), reseed, passage (the mode, entered or ended), command, last and prepared (as in
+    SampleMemory). Then what the phases found: aged (no plan kept, the plan ages by one sample); waited (a
+    stall inside the wait after a vain escape); escape (MORE: its next batch with escape_next, VAIN: nothing
+    better at a stall, DONE: a plan kept or a penetrating base's guesses all tried; '' not run) and
+    passage_available (the long horizon is there to try after a vain escape); passage_try (MORE with
+    passage_next, VAIN, ENTERED, NOT_STALLED; '' not due); overrides (RESET or COUNTED; '' unchanged).
+    """
+
+    plan: Plan | None
+    pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    reseed: bool
+    passage: bool
+    command: np.ndarray | None
+    last: Sample | None
+    prepared: Prepared | None
+    aged: bool = False
+    waited: bool = False
+    escape: str = ""
+    escape_next: int = 0
+    passage_available: bool = False
+    passage_try: str = ""
+    passage_next: int = 0
+    overrides: str = ""
+
 
 @dataclass
 class Sample:
@@ -85,6 +158,8 @@ class Sample:
     sent_at: float | None = None
     #: the depth its plans may predict and be clear (core/nlp/search.py `depth_allowance`)
     allowance: float = VIOLATION_TOLERANCE
+    #: what it leaves for the next sample (set from the memory when the sample begins)
+    carry: Carry | None = None
 
     def time_left(self) -> float:
         return self.deadline - clock.perf_counter()

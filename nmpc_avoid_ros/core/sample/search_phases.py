@@ -13,15 +13,25 @@ from ..nlp.stagewise import COLD_START_ITERATIONS
 from ..nlp.tiers import TieredNlp
 from ..nlp.tracking import NlpBase
 from .candidates import escape_admission, guess_batch, guess_start
-from .memory import Sample
+from .memory import DONE, ENTERED, ESCAPE_RETRY_SAMPLES, MORE, NOT_STALLED, VAIN, Carry, Sample, SampleMemory
 from .warm_start import initial_guess
 
-#: samples without a new escape attempt after one that found no better plan (the scene is static)
-ESCAPE_RETRY_SAMPLES = 10
+__all__ = ["ESCAPE_RETRY_SAMPLES", "SearchPhases"]
 
 
 class SearchPhases:
-    """The search of NmpcController's sample (every method reads the controller's NLPs, settings and memory)."""
+    """The search of NmpcController's sample (every method reads the controller's NLPs, settings and memory, and
+    records what it found in the sample's Carry: core/sample/memory.py)."""
+
+    def _active(self, state: SampleMemory | Carry) -> NlpBase:
+        """The regular solve's NLP in the mode `state` holds (the memory, or a sample's carry: the mode it entered or
+        ended): the passage mode's long one while in it, else the solver path's."""
+        return self.passage.nlp if state.passage and self.passage.nlp is not None else self.nlp
+
+    def _cold(self, state: SampleMemory | Carry) -> bool:
+        """A sample from `state` starts cold: a fast path without a plan (or re-seeding), nothing to continue."""
+        return self.cold_nlp is not None and state.pending is None and (state.plan is None or state.reseed) and \
+            not state.passage
 
     def _search_within(self, sample: Sample, report: SearchReport) -> tuple[Candidate | None, Candidate | None]:
         """`_search` with the solver calls' deadline of the sample set for its duration."""
@@ -34,14 +44,14 @@ class SearchPhases:
     def _search(self, sample: Sample, report: SearchReport) -> tuple[Candidate | None, Candidate | None]:
         """The sample's search: the regular starts, then the escape or the passage guesses from the plan
         found. Returns (the best plan or None, the regular search's last candidate)."""
-        mem, s = self.memory, self.settings
+        mem, s, carry = self.memory, self.settings, sample.carry
         if not sample.in_domain:
             report.phase = "no_solve"
             return None, None
-        previous_y_a = None if mem.plan is None else mem.plan.y_a.copy()
-        if mem.passage and self.passage.can_hand_back(mem.plan, self.nlp.layout.horizon):
+        previous_y_a = None if carry.plan is None else carry.plan.y_a.copy()
+        if carry.passage and self.passage.can_hand_back(carry.plan, self.nlp.layout.horizon):
             # the long plan reaches its x_a within N samples: its first N stages are a regular plan
-            mem.plan, mem.pending, mem.passage = self.passage.hand_back(mem.plan, self.nlp), None, False
+            carry.plan, carry.pending, carry.passage = self.passage.hand_back(carry.plan, self.nlp), None, False
             report.phase = "passage_ended"
         starts, phase = self._regular_starts(sample)
         report.phase = "passage_ended" if report.phase == "passage_ended" else phase
@@ -49,7 +59,7 @@ class SearchPhases:
                                    stop_at_clear=True, allowance=sample.allowance)
         sample.seconds += spent
         sample.regular = best or last
-        if best is None or mem.passage:
+        if best is None or carry.passage:
             return best, last
         penetrating = s.mu > 0 and self.escape.available and not best.clear
         # the passage's guesses, once due, run to their end before the escape's wait counts down again: else a
@@ -68,23 +78,23 @@ class SearchPhases:
         iterate continued; a cold start's guesses (on an ellipse tier: the resting plan, then the straight
         line; then the SQP path itself; then the reference, core/nlp/tiers.py and docs/design.md); or the
         shifted plan (on the tier that holds the regions)."""
-        mem, s, x, y_t = self.memory, self.settings, sample.x, sample.y_t
-        if mem.passage:
-            return [self._start("passage", self.active_nlp, sample, s.max_iterations)], "passage"
-        if mem.pending is not None:
+        carry, s, x, y_t = sample.carry, self.settings, sample.x, sample.y_t
+        if carry.passage:
+            return [self._start("passage", self._active(carry), sample, s.max_iterations)], "passage"
+        if carry.pending is not None:
             return [self._start("continued", self.nlp, sample, s.max_iterations)], "continue"
-        if not self._cold():
-            label = "straight" if mem.plan is None else "shifted"
+        if not self._cold(carry):
+            label = "straight" if carry.plan is None else "shifted"
             return [self._start(label, self.tiered, sample, s.max_iterations)], "warm"
         budget = max(s.max_iterations, COLD_START_ITERATIONS)
         starts = []
-        if self.tiered.tier is not None and mem.plan is None and self.escape.available:
+        if self.tiered.tier is not None and carry.plan is None and self.escape.available:
             starts = [guess_start(self.tiered, x, sample.par, guess, budget=budget, cold=True)
                       for guess in self.cold_guesses(x, y_t)]
         # SQP paths try a cold start themselves (cheap, and it works on small problems); FATROP fails
         # slowly there (hundreds of ms): the reference solves it
         if s.solver.startswith("sqp"):
-            starts.append(self._start("straight" if mem.plan is None else "shifted", self.nlp, sample, budget, True))
+            starts.append(self._start("straight" if carry.plan is None else "shifted", self.nlp, sample, budget, True))
         # a fast path's cold start gets its real-time budget, not the cold one, so that the reference always has
         # its turn: FATROP did not return from some starts of a car-like robot at rest (campaign bicycle-0024:
         # every sample's 1.2 s went to it, the car never moved; IPOPT solved the same sample in 14 iterations)
@@ -95,15 +105,16 @@ class SearchPhases:
 
     def _start(self, label: str, nlp: NlpBase, sample: Sample, budget: int, cold: bool = False) -> Start:
         """A start of `nlp` from the warm-start rules (core/sample/warm_start.py) at this sample."""
-        regular = nlp.regular if isinstance(nlp, TieredNlp) else nlp
-        w0, lam_x0, lam_g0 = initial_guess(regular, sample.x, sample.y_t, self.memory.plan, self.memory.pending,
-                                           self.settings, self.model, keep_duals=regular is self.active_nlp)
+        regular, carry = nlp.regular if isinstance(nlp, TieredNlp) else nlp, sample.carry
+        w0, lam_x0, lam_g0 = initial_guess(regular, sample.x, sample.y_t, carry.plan, carry.pending,
+                                           self.settings, self.model, keep_duals=regular is self._active(carry))
         return Start(label, nlp, regular.fill_slacks(w0, sample.par), lam_x0, lam_g0, budget, cold)
 
     def _escape_due(self, base: Candidate, previous_y_a: np.ndarray | None, sample: Sample) -> bool:
-        """Try escape guesses now? Stalled in front of a blocking region, and not tried in vain just before."""
+        """Try escape guesses now? Stalled in front of a blocking region, and not tried in vain just before (a
+        sample inside that wait spends one of it: Carry.waited)."""
         if self.memory.escape_wait > 0:
-            self.memory.escape_wait -= 1
+            sample.carry.waited = True
             return False
         y_a = base.nlp.layout.y_a(base.w)
         return self.escape.should_try(y_a, previous_y_a, sample.y_t, sample.par)
@@ -128,38 +139,39 @@ class SearchPhases:
                                 allowance=sample.allowance)
         sample.seconds += spent
         report.kept = best.label
-        mem.escape_next = 0
+        carry = sample.carry
+        carry.escape = DONE
         if best is base and rest:  # the next batch on the next sample (still stalled: the base held)
-            mem.escape_next = len(guesses) - rest
+            carry.escape, carry.escape_next = MORE, len(guesses) - rest
             report.more_next_sample = rest
         elif best is base and not penetrating:  # nothing better here: do not try again every sample at rest
-            mem.escape_wait = ESCAPE_RETRY_SAMPLES
-            mem.passage_due, mem.passage_next = self.passage.available, 0  # the long horizon next sample
+            carry.escape, carry.passage_available = VAIN, self.passage.available  # the long horizon next sample
         return best
 
     def _try_passage(self, sample: Sample, base: Candidate, previous_y_a: np.ndarray | None,
                      report: SearchReport) -> Candidate:
         """The sample after a vain stall escape: if y_a is still stalled in front of the region, the
         passage NLP's plan that passes it (entering the mode), else the base."""
-        mem, s = self.memory, self.settings
-        mem.passage_due = False
+        mem, s, carry = self.memory, self.settings, sample.carry
+        carry.passage_try = NOT_STALLED
         y_a = base.nlp.layout.y_a(base.w)
         if not self.escape.should_try(y_a, previous_y_a, sample.y_t, sample.par):
             return base
         starts, next_guess, rest = self.passage.starts(sample.x, sample.y_t, sample.par, base, self._regions,
                                                        mem.passage_next, s.escape_guesses_per_sample)
-        report.phase, mem.passage_next = "passage_try", 0
+        report.phase = "passage_try"
         entered, _, spent = search(starts, sample.par, sample.time_left(), report, "passage_try",
                                    s.feasibility_tolerance, admit=self.passage.admit(base, sample.par),
                                    allowance=sample.allowance)
         sample.seconds += spent
         if entered is None:
             if rest:  # the next batch on the next sample
-                mem.passage_due, mem.passage_next, report.more_next_sample = True, next_guess, rest
+                carry.passage_try, carry.passage_next, report.more_next_sample = MORE, next_guess, rest
             else:  # every guess tried in vain
-                mem.escape_wait = ESCAPE_RETRY_SAMPLES
+                carry.passage_try = VAIN
             report.kept = base.label
             return base
-        mem.passage = report.entered_passage = True
+        carry.passage_try, carry.passage = ENTERED, True
+        report.entered_passage = True
         report.kept = entered.label
         return entered
