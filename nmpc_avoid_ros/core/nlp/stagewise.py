@@ -35,8 +35,9 @@ from ..config.settings import ControllerSettings
 from ..errors import ConfigError
 from ..problem.models import Model
 from .between import between_samples, worst_of
+from .gauss_newton import GAUSS_NEWTON
 from .parts import check_sizes, depth_function, problem_parts
-from .terminal import terminal_constraint
+from .terminal import terminal_constraint, terminal_residual
 from .tracking import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp
 
 #: iteration budget of a cold start (no previous plan), also in core/sample/controller.py
@@ -199,7 +200,9 @@ class StagewiseNlp(NlpBase):
                 g += [s_n - depth_n, rows]
                 lbg += [0.0] * nd + lo
                 ubg += [inf] * nd + hi
-                cost += v_f + (parts.mu + regularise) * ca.dot(s_n, s_n)
+                cost += (parts.mu + regularise) * ca.dot(s_n, s_n)  # + V_f below (the SQP paths need it apart)
+                residual, row_residuals = terminal_residual(s, mdl, x_n, x_a, Y[k], u_a)
+                gauss_newton = (residual, len(lbg) - len(lo), row_residuals)  # the set rows' first index in g
                 tracking += v_f
             dx, du = X[k] - x_a, U[k] - u_a
             stage = ca.dot(parts.q * dx, dx) + ca.dot(parts.r * du, du)
@@ -209,7 +212,9 @@ class StagewiseNlp(NlpBase):
             slack_depths.append(depth)
         w = ca.vertcat(*w)
         g = ca.vertcat(*g)
+        cost_without_v_f = cost
         if with_set:
+            cost = cost + v_f
             slack_vars.append(s_n)
             slack_depths.append(depth_n)
         all_depths = ca.vertcat(*slack_depths)
@@ -224,8 +229,9 @@ class StagewiseNlp(NlpBase):
         stages = {"nx": [n + p] * (N + 1),
                   "nu": [int(stage_start[k + 1] - stage_start[k] - n - p) for k in range(N)] + [0],
                   "ng": [int(g_start[k + 1] - g_start[k]) - (n + p if k < N else 0) for k in range(N + 1)]}
-        problem = {"x": w, "p": par, "f": cost, "g": g}
-        self.problem = problem
+        self.problem = {"x": w, "p": par, "f": cost, "g": g}
+        # the SQP paths' Gauss-Newton Hessian takes V_f as the least squares |residual|^2 (core/nlp/gauss_newton.py)
+        problem = {**self.problem, GAUSS_NEWTON: (cost_without_v_f, *gauss_newton)} if with_set else self.problem
         self.solver, self.solver_info = self._make_solver(problem, s, stages)
         if s.solver.startswith("sqp") and s.max_iterations < COLD_START_ITERATIONS:
             # a real-time budget is too small for a cold start: the same solver (and compiled

@@ -35,14 +35,10 @@ from ..problem.terminal import (
     local_controller,
 )
 from .codegen import cache_dir
+from .gauss_newton import upper_cholesky
 
 #: bump when the computation changes: old cache files are then not read
 CACHE_VERSION = "terminal-4"
-#: the solver paths that carry `terminal: set`
-TERMINAL_SET_SOLVERS = ("ipopt", "fatrop")
-#: why the others do not: their Gauss-Newton Hessian is the cost's own, and V_f = e'P(y_a)e makes it indefinite
-#: (cross terms of e and y_a); measured on the paper's run: 4 and 1 of 50 samples solved, the rest fallbacks
-SQP_REFUSAL = "its Gauss-Newton Hessian is indefinite with V_f = e'P(y_a)e"
 
 log = logging.getLogger(__name__)
 
@@ -125,14 +121,21 @@ def terminal_constraint(settings: ControllerSettings, model: Model, x_n: ca.SX, 
     if settings.terminal == "equality":
         n = model.n
         return None, x_n - x_a, [0.0] * n, [0.0] * n
-    if settings.solver not in TERMINAL_SET_SOLVERS:
-        raise ConfigError(f"terminal: set is built for solver {' and '.join(TERMINAL_SET_SOLVERS)}; solver "
-                          f"{settings.solver!r} refuses it ({SQP_REFUSAL}): use terminal: equality or another solver")
     ingredients = terminal_ingredients(settings, model)
     e = x_n - x_a
     v_f = ca.dot(e, ca.mtimes(ingredients.symbolic(y_a), e))
     levels = ingredients.levels(y_a, ca.vertcat(x_a, u_a))
     return v_f, ca.vertcat(*[v_f / level - 1 for level in levels]), [-np.inf] * len(levels), [0.0] * len(levels)
+
+
+def terminal_residual(settings: ControllerSettings, model: Model, x_n: ca.SX, x_a: ca.SX, y_a: ca.SX, u_a: ca.SX
+                      ) -> tuple[ca.SX, list[ca.SX]]:
+    """The terminal cost and set rows as least squares, for the SQP paths' Gauss-Newton Hessian
+    (core/nlp/gauss_newton.py): r = R(y_a) (x(N) - x_a) [n] with R'R = P(y_a) (the upper Cholesky factor of the
+    fitted P), so |r|^2 = V_f; and per row of `terminal_constraint` (V_f / level - 1) r / sqrt(level)."""
+    ingredients = terminal_ingredients(settings, model)
+    r = ca.mtimes(upper_cholesky(ingredients.symbolic(y_a)), x_n - x_a)
+    return r, [r / ca.sqrt(level) for level in ingredients.levels(y_a, ca.vertcat(x_a, u_a))]
 
 
 class ShiftedTail:

@@ -36,6 +36,7 @@ from ..problem.models import Model
 from . import background
 from .between import between_samples, worst_of
 from .buffered import Buffered
+from .gauss_newton import plain_problem, sqp_hessian
 from .parts import NlpLayout, check_sizes, depth_function, problem_parts
 from .terminal import terminal_constraint
 from .worker import ABANDONED
@@ -342,6 +343,7 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
     "background": whether the solver is interpreted until its library is compiled}.
     """
     path = settings.solver
+    nlp, gauss_newton = plain_problem(nlp)  # the SQP paths' least-squares V_f (core/nlp/gauss_newton.py)
     if path not in _PLUGINS:
         raise ConfigError(f"unknown solver {path!r}; known: {', '.join(SOLVERS)}")
     plugin = _PLUGINS[path]
@@ -369,14 +371,10 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
             qp_opts.update({"print_iter": False, "print_header": False, "print_info": False,
                             "max_iter": QP_ITERATION_CAP})
         # the cost is a sum of squares and the constraints carry the curvature we drop: the
-        # Gauss-Newton Hessian is the cost's own (constant) Hessian, always positive semi-definite
-        # (measured against the exact Hessian with regularisation: fewer iterations on the paper
-        # problem, but neither converges reliably on the mobile robot at N = 20: use fatrop there)
-        lam_f = ca.SX.sym("lam_f")
-        lam_g = ca.SX.sym("lam_g", nlp["g"].numel())
-        hessian = ca.Function("nlp_hess_l", [nlp["x"], nlp["p"], lam_f, lam_g],
-                              [lam_f * ca.hessian(nlp["f"], nlp["x"])[0]],
-                              ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        # Gauss-Newton Hessian is the cost's own, positive semi-definite (V_f as least squares:
+        # core/nlp/gauss_newton.py; measured against the exact Hessian with regularisation: fewer iterations
+        # on the paper problem, but neither converges reliably on the mobile robot at N = 20: use fatrop there)
+        hessian = sqp_hessian(nlp, gauss_newton)
         opts.update({"qpsol": qpsol, "qpsol_options": qp_opts, "hess_lag": hessian, "max_iter": settings.max_iterations,
                      "print_header": False, "print_iteration": False, "print_status": False,
                      "tol_pr": settings.tolerance, "tol_du": max(settings.tolerance, 1e-6)})
