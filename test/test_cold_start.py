@@ -16,7 +16,7 @@ from conftest import PAPER_TARGET, PAPER_X0, solver_calls
 
 from nmpc_avoid_ros.bench.main import VDP_ELLIPSES
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
-from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.loop.closed_loop import make_plant, run_closed_loop
 from nmpc_avoid_ros.core.nlp.search import Outcome, Start, plan_cost, solve_start
 from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
 from nmpc_avoid_ros.core.sample.candidates import Guess, guess_start
@@ -188,18 +188,56 @@ def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
     assert result.solve_time <= controller.sample_budget() + 0.05
 
 
-def test_a_fast_path_cold_start_gets_its_real_time_budget_and_the_reference_its_turn():
-    """Campaign scene bicycle-0024 (the car at rest, no obstacle): FATROP (1.1.8) does not return from its cold starts
-    there; each fast-path cold start is cut at max_solve_time, so the reference still answers the sample (before,
-    the first start took the whole cold budget, sample after sample, and the car never moved)."""
+#: campaign scene bicycle-0024 (the car at rest, no obstacle): its start x0 and goal pose
+BICYCLE_0024 = {"x0": [-6.355656512209264, 2.870022962987896, 1.9523459771080096],
+                "goal": [-1.7294034884835217, 4.221326421816794, -1.3779670930499923]}
+
+
+def bicycle_controller(**changes) -> tuple[ControllerSettings, NmpcController]:
+    """config/bicycle.yaml's controller, interpreted, with `changes` to its settings."""
     params = load_params_file("config/bicycle.yaml").section("controller")
-    settings = ControllerSettings.from_params(params).replace(codegen=False, codegen_background=False)
-    controller = NmpcController(settings)
-    x0 = np.array([-6.355656512209264, 2.870022962987896, 1.9523459771080096])
-    goal = np.array([-1.7294034884835217, 4.221326421816794, -1.3779670930499923])
+    settings = ControllerSettings.from_params(params).replace(codegen=False, codegen_background=False, **changes)
+    return settings, NmpcController(settings)
+
+
+def test_a_fast_path_cold_start_gets_its_real_time_budget_and_the_reference_its_turn():
+    """Campaign scene bicycle-0024: each fast-path cold start is cut at max_solve_time, so the reference would still
+    answer the sample (FATROP 1.1.8 did not return from the resting plan there before core/nlp/stagewise.py's
+    RANK_TOLERANCE: the first start took the whole cold budget, sample after sample, and the car never moved)."""
+    settings, controller = bicycle_controller()
+    x0, goal = np.array(BICYCLE_0024["x0"]), np.array(BICYCLE_0024["goal"])
     result = controller.step(x0, goal, (), time=0.0)
     assert result.status == StepStatus.OK
     fast = [t for t in result.search.tried if t.label != "reference" and t.solver_called]
     assert all(t.seconds <= settings.max_solve_time + 0.05 for t in fast)
     kept = [t.label for t in result.search.tried if t.outcome.value == "kept"]
     assert len(kept) == 1 and (kept[0] != "rest") == (result.search.tried[0].outcome.value != "kept")
+
+
+def test_fatrop_solves_the_car_at_rest_from_its_resting_plan():
+    """Campaign scene bicycle-0024 with the config's former integration_steps 4: FATROP converges from the plan resting
+    where the car stands (kept, no other start). Before RANK_TOLERANCE (core/nlp/stagewise.py) it never returned: at
+    v ~ 1e-4 the heading rows of the terminal equality passed FATROP's default rank test with a tiny pivot, and no
+    primal regularisation made the reduced Hessian positive definite; the call was abandoned at max_solve_time."""
+    settings, controller = bicycle_controller(integration_steps=4)
+    result = controller.step(np.array(BICYCLE_0024["x0"]), np.array(BICYCLE_0024["goal"]), (), time=0.0)
+    first = result.search.tried[0]
+    assert (first.label, first.solver_status, first.outcome) == ("rest", "0", Outcome.KEPT), result.search.tried
+    assert first.seconds < settings.max_solve_time
+
+
+def test_the_car_parks_at_its_goal_without_a_fallback():
+    """Campaign scene bicycle-0024 on the continuous plant: the car reaches its goal pose and every sample's FATROP
+    solve returns. Before RANK_TOLERANCE the shifted plan near the goal (v ~ 0) hung FATROP every other sample: 58
+    fallbacks in 200 samples, the IPOPT reference answering in between."""
+    settings, controller = bicycle_controller()
+    model = settings.build_model()
+    plant = make_plant("continuous", model, settings)
+    x, goal = np.array(BICYCLE_0024["x0"]), np.array(BICYCLE_0024["goal"])
+    statuses = []
+    for k in range(90):
+        result = controller.step(x, goal, (), time=k * settings.sample_time)
+        statuses.append(result.status)
+        x = plant.advance(x, np.asarray(result.u), settings.sample_time)
+    assert all(s == StepStatus.OK for s in statuses), statuses
+    assert np.linalg.norm(model.output_error(x, goal)) < 0.05  # the output is the pose x

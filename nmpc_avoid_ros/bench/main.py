@@ -7,9 +7,9 @@ burst of load on the shared machine hits every variant alike. Building a variant
 - `paper/<mu>/<plant>`: the paper's example, x0 = [-5, 0], y_t = 5, 50 samples, the shipped
   config with no obstacle slots (the paper's problem exactly: the two keep-in regions).
 - `vdp_4_ellipses`: the paper's run (N = 5) among 4 ellipses, one across the steady states on the way.
-- `shipped/vdp_4_ellipses`, `shipped/robot_4_ellipses`: the same van der Pol run, and the mobile
-  robot among 4 ellipses, with the shipped configs exactly as they are (region capacity, tiers):
-  what a user of each solver path gets.
+- `shipped/vdp_4_ellipses`, `shipped/robot_4_ellipses`, `shipped/bicycle_4_ellipses`: the same van der
+  Pol run, the mobile robot and the car-like robot among 4 ellipses, with the shipped configs exactly as they
+  are (region capacity, tiers): what a user of each solver path gets.
 - `scaling/N=<N>`: the mobile robot (config/mobile_robot.yaml) among 4 ellipses, N = 5..100.
 - `moving_obstacle`: the mobile robot at N = 20 while an ellipse moves every sample (the
   obstacle set changes every sample; no variant may rebuild).
@@ -130,14 +130,24 @@ def vdp_ellipse_scenario(steps: int) -> Scenario:
                     "euler", lambda k: VDP_ELLIPSES if k == 0 else None)
 
 
+#: four ellipses on the car-like robot's way from config/bicycle.yaml's start (-4, -3) to its goal (3, 2)
+BICYCLE_ELLIPSES = (Ellipse((-2.0, -1.6), (0.6, 0.4), 0.3, "output"), Ellipse((0.0, 0.1), (0.5, 0.7), 0.0, "output"),
+                    Ellipse((1.8, 0.7), (0.4, 0.4), 0.0, "output"), Ellipse((1.4, 2.7), (0.4, 0.6), -0.4, "output"))
+
+
 def shipped_scenarios(steps: int) -> list[Scenario]:
-    """The shipped configs as they are (their region capacities and ellipse tiers) among 4 ellipses."""
+    """The shipped configs as they are (their region capacities and ellipse tiers) among 4 ellipses; the car-like
+    robot (config/bicycle.yaml, its own scenario's start and goal pose) for twice the samples, to come to rest."""
     vdp = ControllerSettings.from_params(_config("van_der_pol.yaml"))
     robot = ControllerSettings.from_params(_config("mobile_robot.yaml"))
+    bicycle = ControllerSettings.from_params(_config("bicycle.yaml"))
     return [Scenario("shipped/vdp_4_ellipses", vdp, vdp.build_model(), np.array([-5.0, 0.0]), np.array([5.0]),
                      steps, "euler", lambda k: VDP_ELLIPSES if k == 0 else None),
             Scenario("shipped/robot_4_ellipses", robot, robot.build_model(), np.array([-8.0, -6.0, 0.0, 0.0]),
-                     np.array([8.0, 6.0]), steps, "continuous", lambda k: ROBOT_ELLIPSES if k == 0 else None)]
+                     np.array([8.0, 6.0]), steps, "continuous", lambda k: ROBOT_ELLIPSES if k == 0 else None),
+            Scenario("shipped/bicycle_4_ellipses", bicycle, bicycle.build_model(), np.array([-4.0, -3.0, 0.0]),
+                     np.array([3.0, 2.0, 0.0]), 2 * steps, "continuous",
+                     lambda k: BICYCLE_ELLIPSES if k == 0 else None)]
 
 
 def robot_settings(horizon: int) -> ControllerSettings:

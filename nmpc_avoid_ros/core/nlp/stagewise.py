@@ -43,6 +43,21 @@ from .tracking import SLACK_REGULARISATION, Buffered, NlpBase, TrackingNlp
 #: iteration budget of a cold start (no previous plan), also in core/sample/controller.py
 COLD_START_ITERATIONS = 200
 
+#: FATROP's pivot tolerance (absolute, default 1e-5) for the rank of a stage's equality rows over its controls, for a
+#: model with `rest` rows. The terminal equality x(N) = x_a reaches back through the dynamics, and FATROP eliminates
+#: it stage by stage over each stage's controls with a pivoted LU. Near rest the car's heading and sideways rows
+#: depend on the controls in proportion to v (steering: about sample_time v / wheelbase), so an iterate with v ~ 1e-4
+#: passed the default tolerance with a tiny pivot, and the huge elimination factors made the reduced Hessian
+#: indefinite for every primal regularisation: FATROP 1.1.8's inertia correction has no upper limit, so it never
+#: returned (campaign scene bicycle-0024, test/test_cold_start.py: from the resting plan, and from the shifted plans
+#: near its goal, with integration_steps 4 and 2). At 1e-3 such rows pass on to the stage before (at last to y_a,
+#: which holds them), as at rest.
+RANK_TOLERANCE = 1e-3
+#: the barrier parameter a warm FATROP solve of such a model starts from: the car-like robot's median shifted plan
+#: among 4 ellipses took 10 iterations from FATROP's default 0.1, 6 from 1e-2, 4 from 1e-3 (BENCHMARKS.md). Cold
+#: starts keep the default (from the resting plan 1e-3 did not converge in 200 iterations)
+WARM_BARRIER = 1e-3
+
 
 @dataclass
 class StagewiseLayout:
@@ -232,6 +247,13 @@ class StagewiseNlp(NlpBase):
         self.problem = {"x": w, "p": par, "f": cost, "g": g}
         # the SQP paths' Gauss-Newton Hessian takes V_f as the least squares |residual|^2 (core/nlp/gauss_newton.py)
         problem = {**self.problem, GAUSS_NEWTON: (cost_without_v_f, *gauss_newton)} if with_set else self.problem
+        if s.solver == "fatrop" and mdl.rest is not None:
+            # a model whose equilibria need `rest` (its heading does not move at v = 0): FATROP's rank test of the
+            # stages' equality rows, and a warm solve's barrier (RANK_TOLERANCE, WARM_BARRIER); cold starts keep
+            # FATROP's own barrier, on a twin solver of the same compiled library
+            self.fatrop_options = {"linsol_lu_fact_tol": RANK_TOLERANCE}
+            self.cold_solver, _ = self._make_solver(problem, s, stages)
+            self.fatrop_options = {**self.fatrop_options, "mu_init": WARM_BARRIER}
         self.solver, self.solver_info = self._make_solver(problem, s, stages)
         if s.solver.startswith("sqp") and s.max_iterations < COLD_START_ITERATIONS:
             # a real-time budget is too small for a cold start: the same solver (and compiled

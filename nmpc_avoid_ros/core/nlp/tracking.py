@@ -155,12 +155,13 @@ class NlpBase:
 
     #: solvers this formulation has constructed (each make_solver call); NmpcController.nlp_builds sums them
     solver_builds: int = 0
+    fatrop_options: dict = {}  #: FATROP options beyond make_solver's (core/nlp/stagewise.py sets them)
 
     def _make_solver(self, problem: dict, settings: ControllerSettings,
                      stages: dict[str, list[int]] | None = None) -> tuple[ca.Function, dict]:
         """make_solver for this formulation's constraints, counted in solver_builds."""
         self.solver_builds += 1
-        return make_solver(problem, settings, self.lbg == self.ubg, stages)
+        return make_solver(problem, settings, self.lbg == self.ubg, stages, self.fatrop_options)
 
     def fill_slacks(self, w: np.ndarray, par: np.ndarray) -> np.ndarray:
         """w with its slacks set to max(0, depth) of its own states (the tightest feasible slacks)."""
@@ -326,21 +327,19 @@ QP_ITERATION_CAP = 100
 #: the CasADi plugin of each solver path
 _PLUGINS = {"ipopt": "ipopt", "fatrop": "fatrop", "sqp": "sqpmethod", "sqp_hpipm": "sqpmethod"}
 
-
 #: iterations in a row with the KKT error below acceptable_tolerance after which IPOPT or FATROP stop there
 ACCEPTABLE_ITERATIONS = 5
 
 def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
-                stages: dict[str, list[int]] | None = None) -> tuple[ca.Function, dict]:
+                stages: dict[str, list[int]] | None = None, fatrop: dict | None = None) -> tuple[ca.Function, dict]:
     """nlpsol for the chosen solver path with its budget (iterations; wall time where supported).
 
-    `equality` flags the constraints with lbg == ubg (FATROP needs to know them); `stages` gives
-    the stage dimensions nx, nu, ng [N + 1] of a stage-wise problem (HPIPM needs them). With
-    settings.codegen the oracles are generated, compiled and cached (see core/nlp/codegen.py); with
-    settings.codegen_background a library missing from the cache compiles in the background and the
-    solver is interpreted until it is swapped in (core/nlp/background.py).
-    Returns the solver and {"codegen": bool, "library": path or None, "cache_hit": bool or None,
-    "background": whether the solver is interpreted until its library is compiled}.
+    `equality` flags the constraints with lbg == ubg (FATROP needs to know them); `stages` gives the stage
+    dimensions nx, nu, ng [N + 1] of a stage-wise problem (HPIPM needs them); `fatrop`: FATROP's further options.
+    With settings.codegen the oracles are generated, compiled and cached (see core/nlp/codegen.py); with
+    settings.codegen_background a library missing from the cache compiles in the background and the solver is
+    interpreted until it is swapped in (core/nlp/background.py). Returns the solver and {"codegen": bool,
+    "library": path or None, "cache_hit": bool or None, "background": interpreted until its library is compiled}.
     """
     path = settings.solver
     nlp, gauss_newton = plain_problem(nlp)  # the SQP paths' least-squares V_f (core/nlp/gauss_newton.py)
@@ -355,7 +354,8 @@ def make_solver(nlp: dict, settings: ControllerSettings, equality: np.ndarray,
             opts["ipopt"].update(acceptable_tol=settings.acceptable_tolerance, acceptable_iter=ACCEPTABLE_ITERATIONS)
     elif path == "fatrop":
         opts.update({"structure_detection": "auto", "equality": [bool(e) for e in equality],
-                     "fatrop": {"print_level": 0, "max_iter": settings.max_iterations, "tol": settings.tolerance}})
+                     "fatrop": {"print_level": 0, "max_iter": settings.max_iterations, "tol": settings.tolerance,
+                                **(fatrop or {})}})
         if settings.acceptable_tolerance > 0:
             opts["fatrop"].update(tol_acceptable=settings.acceptable_tolerance, acceptable_iter=ACCEPTABLE_ITERATIONS)
     else:
