@@ -299,6 +299,7 @@ def test_the_bicycle_family_drives_to_goal_poses_and_judges_headings_the_short_w
     assert record["id"] == "bicycle-0000" and len(record["final_y"]) == 3
 
 
+@pytest.mark.slow
 def test_the_world_family_drives_through_its_lidar_and_judges_the_body_against_the_room(tmp_path):
     """Opt-in (--world N): random rooms from the seed, start and goal clear of walls and pillars, the pillars
     off the straight way; each sample's regions come from a scan of the room (evaluation/campaign/world.py); a
@@ -325,3 +326,24 @@ def test_the_world_family_drives_through_its_lidar_and_judges_the_body_against_t
     assert record["id"] == "world-0000" and record["perception_ms"]["median"] > 0
     summary = json.loads((out / "summary.json").read_text())["summary"]["world"]
     assert summary["scenarios"] == 1 and 0.0 <= summary["collisions"] <= 1.0
+
+
+@pytest.mark.slow
+def test_the_bicycle_world_family_draws_the_worlds_rooms_with_a_goal_heading_and_judges_it(tmp_path):
+    """Opt-in (--bicycle-world N): the world family's rooms (the same draws, then a heading) for the car-like robot
+    of config/bicycle_world.yaml; reached means the position and the heading (evaluation/campaign/world.py)."""
+    fams = families()
+    unicycle, car = (load_settings(fams[key].config) for key in ("world", "bicycle_world"))
+    for seed in range(5):
+        plain = world_scenario(np.random.default_rng(seed), unicycle, make_model(unicycle.model))
+        pose = world_scenario(np.random.default_rng(seed), car, make_model(car.model))
+        assert pose["target"][:2] == plain["target"] and -np.pi <= pose["target"][2] < np.pi
+        assert {k: v for k, v in pose.items() if k != "target"} == {k: v for k, v in plain.items() if k != "target"}
+    out = tmp_path / "c"
+    # interpreted solvers: the family's scoring is under test, not its compiled code
+    assert main(["--out", str(out), "--vdp", "0", "--robot", "0", "--bicycle-world", "1", "--bicycle-world-steps",
+                 "15", "--set", "codegen=false", "--plant", "continuous", "--no-progress", "--no-plots"]) == 0
+    (record,) = read_jsonl(out / JSONL_NAME).values()
+    assert record["id"] == "bicycle_world-0000" and len(record["spec"]["target"]) == 3
+    assert not record["reached"]  # 15 samples (3 s) do not reach a goal at least 3 m away and turned
+    assert json.loads((out / "summary.json").read_text())["summary"]["bicycle_world"]["scenarios"] == 1

@@ -32,7 +32,8 @@ LAYOUTS = {"unicycle.yaml": ("unicycle.rviz", "unicycle.foxglove.json"),
            "bicycle.yaml": ("unicycle.rviz", "unicycle.foxglove.json"),
            "mobile_robot.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json"),
            "mobile_robot_live.yaml": ("mobile_robot.rviz", "mobile_robot.foxglove.json"),
-           "unicycle_world.yaml": ("world.rviz", "world.foxglove.json")}
+           "unicycle_world.yaml": ("world.rviz", "world.foxglove.json"),
+           "bicycle_world.yaml": ("world.rviz", "world.foxglove.json")}
 RVIZ_TYPES = {"rviz_default_plugins/Odometry": "nav_msgs/msg/Odometry",
               "rviz_default_plugins/Path": "nav_msgs/msg/Path",
               "rviz_default_plugins/MarkerArray": "visualization_msgs/msg/MarkerArray",

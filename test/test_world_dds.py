@@ -1,5 +1,5 @@
-"""launch/world.launch.py through DDS: the unicycle reaches its goal in each shipped world, seeing only what its
-simulated lidar sees (plant with the world's map and walkers -> scan -> `obstacles` node -> regions -> controller).
+"""launch/world.launch.py through DDS: the unicycle reaches its goal in each shipped world, and the car-like robot in
+the room with its walkers, seeing only what its simulated lidar sees (plant with the world's map and walkers -> scan -> `obstacles` node -> regions -> controller).
 
 The nodes are started as `ros2 launch` would start them (test_launch_files.py reads the launch file with
 stand-in launch modules), in real time.
@@ -23,9 +23,10 @@ from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
-GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's target
+GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's and config/bicycle_world.yaml's target (the car's heading 0)
 REACH_WITHIN = 60.0  # s of real time (the room took 13-15 s here)
-BODY = 0.2  # m, config/unicycle_world.yaml footprint_radius
+#: m, each config's footprint_radius
+BODY = {"unicycle_world.yaml": 0.2, "bicycle_world.yaml": 0.25}
 
 
 def wall_distance(world_file: str, xy: np.ndarray) -> float:
@@ -36,9 +37,12 @@ def wall_distance(world_file: str, xy: np.ndarray) -> float:
     return float(cKDTree(centres).query(xy)[0].min())
 
 
-@pytest.mark.parametrize("world, walkers", [("worlds/room.yaml", "worlds/room_walkers.yaml"),
-                                            ("worlds/pillars.yaml", "")], ids=["room", "pillars"])
-def test_the_unicycle_reaches_its_goal_in_each_shipped_world(ros_graph, monkeypatch, world, walkers):
+@pytest.mark.parametrize("world, walkers, config", [
+    ("worlds/room.yaml", "worlds/room_walkers.yaml", "unicycle_world.yaml"),
+    ("worlds/pillars.yaml", "", "unicycle_world.yaml"),
+    # the car-like robot (turning radius 0.92 m) among the walkers: launch/world.launch.py config:=...
+    ("worlds/room.yaml", "worlds/room_walkers.yaml", "bicycle_world.yaml")], ids=["room", "pillars", "car-room"])
+def test_the_robots_reach_their_goal_in_the_shipped_worlds(ros_graph, monkeypatch, world, walkers, config):
     _, _, start, probe = ros_graph
     p = probe()
     poses: list[tuple[float, float]] = []
@@ -48,7 +52,7 @@ def test_the_unicycle_reaches_its_goal_in_each_shipped_world(ros_graph, monkeypa
     p.node.create_subscription(Bool, "controller/goal_reached", lambda m: reached.append(m.data), LATCHED_QOS)
     description = load_launch(ROOT / "launch" / "world.launch.py", monkeypatch)
     resolve = Resolver(description)
-    resolve.defaults.update(world=world, walkers=walkers)
+    resolve.defaults.update(world=world, walkers=walkers, config=str(ROOT / "config" / config))
     procs = []
     for node in nodes_of(description):
         kw = node.kwargs
@@ -67,10 +71,10 @@ def test_the_unicycle_reaches_its_goal_in_each_shipped_world(ros_graph, monkeypa
     outputs = [proc.output()[-2000:] for proc in procs]
     assert ok, (xy[-1:] if len(xy) else None, outputs)
     assert np.hypot(xy[-1, 0] - GOAL[0], xy[-1, 1] - GOAL[1]) <= 0.15
-    # the body (footprint_radius 0.2 m) clear of the walls and pillars: its centre at least the body's radius
-    # from every occupied cell's face (half a cell from its centre)
+    # the body (footprint_radius) clear of the walls and pillars: its centre at least the body's radius from every
+    # occupied cell's face (half a cell from its centre)
     distance = wall_distance(world, xy)
-    print(f"{world}: goal reached {took:.1f} s after the start, least distance to a wall cell's centre "
-          f"{distance:.3f} m (body 0.2 m + half a cell 0.025 m)")
-    assert distance >= BODY + 0.025, distance
+    print(f"{config} in {world}: goal reached {took:.1f} s after the start, least distance to a wall cell's centre "
+          f"{distance:.3f} m (body {BODY[config]} m + half a cell 0.025 m)")
+    assert distance >= BODY[config] + 0.025, distance
     assert all(proc.stop() == 0 for proc in procs), outputs

@@ -55,11 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="campaign", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, required=True, help="output directory (rerun with it to resume)")
     for fam in FAMILIES:
-        ap.add_argument(f"--{fam.key}", type=int, default=fam.default_count,
+        flag = fam.key.replace("_", "-")  # --bicycle-world N; argparse gives it the dest bicycle_world
+        ap.add_argument(f"--{flag}", type=int, default=fam.default_count,
                         help=f"number of {fam.title} scenarios (default {fam.default_count})")
-        ap.add_argument(f"--{fam.key}-steps", type=int, default=fam.default_steps,
+        ap.add_argument(f"--{flag}-steps", type=int, default=fam.default_steps,
                         help=f"samples per {fam.title} run (default {fam.default_steps})")
-        ap.add_argument(f"--{fam.key}-config", type=Path,
+        ap.add_argument(f"--{flag}-config", type=Path,
                         help=f"{fam.title} params file (default: the shipped {fam.config_name})")
     ap.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1,

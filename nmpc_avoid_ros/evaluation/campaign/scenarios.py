@@ -7,7 +7,7 @@ generator seeded by (seed, family code, index), so it never depends on how many 
 are, which ran before, or where it runs.
 
 Adding a family is one entry in FAMILIES: a key (the id prefix and the command-line name:
-`--<key> N`, `--<key>-steps`, `--<key>-config`), a seed code never used before, the shipped
+`--<key> N`, `--<key>-steps`, `--<key>-config`, its underscores as dashes), a seed code never used before, the shipped
 params file, defaults, a generator `(rng, settings, model) -> spec fields`, the passage test
 the scoring uses to name the cause of a stop short, and, for regions that change during the
 run, a `schedule` turning the spec into the region set of each sample.
@@ -224,6 +224,9 @@ FAMILIES: tuple[Family, ...] = (
     Family("bicycle", 5, "bicycle.yaml", 0, 200, bicycle_scenario, _planar_way, "car-like robot"),
     # not run unless asked for (--world N): the unicycle in random rooms, seeing only its lidar (world.py)
     Family("world", 6, "unicycle_world.yaml", 0, 150, world_scenario, _planar_way, "unicycle in a room",
+           score=score_world, summarize=summarize_world),
+    # not run unless asked for (--bicycle-world N): the car-like robot in the same rooms, to goal poses (world.py)
+    Family("bicycle_world", 7, "bicycle_world.yaml", 0, 150, world_scenario, _planar_way, "car-like robot in a room",
            score=score_world, summarize=summarize_world),
 )
 

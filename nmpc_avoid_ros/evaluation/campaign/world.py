@@ -1,14 +1,18 @@
-"""Campaign family `world` (`campaign --world N`): the unicycle in random rooms, seeing only its lidar.
+"""Campaign families `world` (`campaign --world N`): the unicycle in random rooms, seeing only its lidar; and
+`bicycle_world` (`--bicycle-world N`): the car-like robot (config/bicycle_world.yaml) in the same rooms, to goal poses.
 
 A scenario is a walled room (6-12 m by 5-10 m, 0.1 m walls, 0.05 m cells), 0-4 square pillars (0.3-0.6 m)
 and 0-4 walkers (discs of radius 0.25 m walking straight at 0.2-0.6 m/s across the room, held by its walls),
-the robot at rest at least 1 m from walls and pillars, the goal likewise and at least 3 m away. Each sample
+the robot at rest at least 1 m from walls and pillars, the goal likewise and at least 3 m away (for a model whose
+output is a pose, the car's, with a heading drawn in [-pi, pi) after everything else). Each sample
 runs what the world launch runs (launch/world.launch.py), offline: a scan of the room and the walkers where
 they are at k Ts (core/loop/world.py: `BEAMS` beams to `RANGE_MAX`) -> the perception of the `obstacles`
 node (core/perception: fitted circles and walls, tracked, with velocities) -> the controller
-(config/unicycle_world.yaml, its body `footprint_radius`) -> the plant, whose commands act ACTUATOR_DELAY late.
+(config/unicycle_world.yaml or config/bicycle_world.yaml, its body `footprint_radius`) -> the plant, whose
+commands act ACTUATOR_DELAY late.
 
-A run's record: `reached` (the robot within GOAL_TOLERANCE of the goal from some sample on, to the end) and
+A run's record: `reached` (the robot within GOAL_TOLERANCE of the goal, and for a pose within HEADING_TOLERANCE of
+its heading the short way round, from some sample on, to the end) and
 `time_to_goal` (s), `collision` (the body enters a wall, a pillar or a walker between the samples: the
 plant integrated in pieces of Ts / 10) with `min_body_clearance` (m: the least distance of the body to
 an occupied cell or a walker; < 0 inside), `perception_ms` and `solve_ms` per sample, `fallbacks`. A room
@@ -43,6 +47,8 @@ BEAMS, RANGE_MAX = 360, 6.0
 WALKER_RADIUS = 0.25
 #: m, the goal counts as reached within this (the config's goal_tolerance 0.1 plus its hysteresis)
 GOAL_TOLERANCE = 0.15
+#: rad, a goal pose's heading counts as reached within this (the config's goal_tolerance 0.1 plus its hysteresis)
+HEADING_TOLERANCE = 0.2
 #: m, start and goal keep this from walls and pillars; the pillars keep CORRIDOR / 2 from the straight way
 CLEARANCE, CORRIDOR = 1.0, 1.5
 #: s, the robot's actuator delay (the plant node's input_delay in config/unicycle_world.yaml; the controller's
@@ -73,8 +79,10 @@ def world_scenario(rng: np.random.Generator, settings: ControllerSettings, model
         heading, speed = rng.uniform(0.0, 2 * math.pi), rng.uniform(0.2, 0.6)
         if np.linalg.norm(centre - start) > 1.5:
             walkers.append([*centre.tolist(), speed * math.cos(heading), speed * math.sin(heading)])
-    return {"x0": [*start.tolist(), float(rng.uniform(-math.pi, math.pi))], "target": goal.tolist(),
-            "ellipses": [], "room": [float(width), float(height)], "pillars": pillars, "walkers": walkers}
+    x0 = [*start.tolist(), float(rng.uniform(-math.pi, math.pi))]
+    target = goal.tolist() + ([float(rng.uniform(-math.pi, math.pi))] if model.p == 3 else [])  # a pose's heading
+    return {"x0": x0, "target": target, "ellipses": [], "room": [float(width), float(height)], "pillars": pillars,
+            "walkers": walkers}
 
 
 def _segment_distance(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
@@ -176,8 +184,11 @@ def score_world(spec: dict[str, Any], family: Any, tools: Any) -> dict[str, Any]
     ts = settings.sample_time
     dense, times = np.vstack([x0, *plant.path]), np.array([0.0, *plant.times])
     body = settings.body_radius
-    distance = np.linalg.norm(run.x[:, :2] - np.asarray(spec["target"], float), axis=1)
+    target = np.asarray(spec["target"], float)
+    distance = np.linalg.norm(run.x[:, :2] - target[:2], axis=1)
     within = distance < GOAL_TOLERANCE
+    if len(target) == 3:  # a goal pose: the heading too, the short way round
+        within &= np.abs(np.angle(np.exp(1j * (run.x[:, 2] - target[2])))) < HEADING_TOLERANCE
     reached_at = next((k for k in range(len(within)) if within[k:].all()), None)
     clearance = body_clearance(spec, world, dense[:, :2], times, body)
     return {"id": spec["id"], "family": spec["family"], "index": spec["index"],
