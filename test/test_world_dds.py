@@ -1,5 +1,6 @@
 """launch/world.launch.py through DDS: the unicycle reaches its goal in each shipped world, and the car-like robot in
-the room with its walkers, seeing only what its simulated lidar sees (plant with the world's map and walkers -> scan -> `obstacles` node -> regions -> controller).
+the room with its walkers, seeing only what its simulated lidar sees (plant with the world's map and walkers ->
+scan -> `obstacles` node -> regions -> controller).
 
 The nodes are started as `ros2 launch` would start them (test_launch_files.py reads the launch file with
 stand-in launch modules), in real time.
