@@ -5,10 +5,12 @@ come in stages, each coupled only to the next by the dynamics. The tracking prob
 global variable, the artificial output y_a; it becomes a constant state (y(k+1) = y(k)), and
 everything that depends on it is written per stage with that stage's copy. Per stage k:
 
-    states   x(k) [n], y(k) [p]
+    states   x(k) [n], y(k) [p] (+ v(k) [m], the input before u(k), with input_rate_max)
     controls u(k) [m], s(k) [n_depth]   (+ s_a [n_depth] at k = 0)     for k < N
-    gap      x(k+1) - f(x(k), u(k)) = 0, y(k+1) - y(k) = 0              for k < N
-    path     k = 0: x(0) = measured x0; s_a >= depth(x_a, u_a); (x_a, u_a) in lambda Z; hard(x_a/lambda)
+    gap      x(k+1) - f(x(k), u(k)) = 0, y(k+1) - y(k) = 0 (, v(k+1) - u(k) = 0)   for k < N
+    path     k = 0: x(0) = measured x0 (v(0) = the command in force); s_a >= depth(x_a, u_a);
+             (x_a, u_a) in lambda Z; hard(x_a/lambda)
+             |u(k) - v(k)| <= input_rate_max Ts (at k = 0 only with a command in force: rate_on)
              s(k) >= depth(x(k), u(k)) and >= depth at the integration_steps - 1 sub-step states
              towards x(k+1); hard(x(k), u(k)) for k >= 1 (and rows that use u at k = 0)
              k = N: x(N) = x_a(y(N))                                     (terminal equality)
@@ -72,14 +74,17 @@ class StagewiseLayout:
     n_w: int
     stage_start: np.ndarray  # [N + 1]
     closed_form: bool = True
+    #: m with input_rate_max (each stage carries the input before its own as a state v(k)), else 0
+    n_prev: int = 0
 
     def __post_init__(self) -> None:
-        n, m, p, N = self.n, self.m, self.p, self.horizon
+        n, m, p, N, r = self.n, self.m, self.p, self.horizon, self.n_prev
         starts = np.asarray(self.stage_start)
-        # index arrays of x(0..N) [N+1, n], y(0..N) [N+1, p] and u(0..N-1) [N, m] in w
+        # index arrays of x(0..N) [N+1, n], y(0..N) [N+1, p], v(0..N) [N+1, r] and u(0..N-1) [N, m] in w
         self.x_index = starts[:, None] + np.arange(n)
         self.y_index = starts[:, None] + n + np.arange(p)
-        self.u_index = starts[:N, None] + n + p + np.arange(m)
+        self.prev_index = starts[:, None] + n + p + np.arange(r)
+        self.u_index = starts[:N, None] + n + p + r + np.arange(m)
 
     def split_w(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, None]:
         """w -> U [N, m], X [N, n] (x(1..N)), y_a [p], None."""
@@ -92,7 +97,7 @@ class StagewiseLayout:
 
     def join_w(self, U: np.ndarray, X: np.ndarray, y_a: np.ndarray, rest: None = None,
                x0: np.ndarray | None = None) -> np.ndarray:
-        """Inverse of split_w with x(0) = x0 (zeros if None); slacks zero (see NlpBase.fill_slacks)."""
+        """Inverse of split_w with x(0) = x0 (zeros if None); slacks and v(k) zero (StagewiseNlp.fill_slacks)."""
         w = np.zeros(self.n_w)
         w[self.x_index[1:]] = np.reshape(X, (self.horizon, self.n))
         if x0 is not None:
@@ -109,9 +114,6 @@ class StagewiseNlp(NlpBase):
         self.settings = settings
         self.model = model or settings.build_model()
         check_sizes(settings, self.model)
-        if settings.input_rate_max:
-            raise ConfigError(f"input_rate_max couples the stages' inputs, which solver {settings.solver!r} does not "
-                              "take: use solver ipopt")
         if not (settings.use_closed_form_steady_state and self.model.steady_state is not None):
             raise ConfigError(f"solver {settings.solver!r} needs the closed-form steady state of the model "
                               "(use_closed_form_steady_state: true); use solver ipopt otherwise")
@@ -133,6 +135,11 @@ class StagewiseNlp(NlpBase):
 
         X = [ca.SX.sym(f"x{k}", n) for k in range(N + 1)]
         Y = [ca.SX.sym(f"y{k}", p) for k in range(N + 1)]
+        # input_rate_max couples u(k) to u(k-1): each stage carries the input before its own as a state v(k)
+        r = m if s.input_rate_max else 0
+        V = [ca.SX.sym(f"v{k}", r) for k in range(N + 1)]
+        limited = [i for i, rate in enumerate(s.input_rate_max) if np.isfinite(rate)]
+        rate_step = [float(s.input_rate_max[i]) * s.sample_time for i in limited]
         U = [ca.SX.sym(f"u{k}", m) for k in range(N)]
         S = [ca.SX.sym(f"s{k}", nd) for k in range(N)]
         s_a = ca.SX.sym("s_a", nd)
@@ -150,17 +157,17 @@ class StagewiseNlp(NlpBase):
             g_start.append(len(lbg))
             x_a, u_a = steady(Y[k])
             inside = 0 < k < N  # x(0) is measured, x(N) is tied to x_a
-            w += [X[k], Y[k]]
+            w += [X[k], Y[k], V[k]]
             lbw += list(s.state_min) if inside else [-inf] * n
             ubw += list(s.state_max) if inside else [inf] * n
-            lbw += [-inf] * p
-            ubw += [inf] * p
+            lbw += [-inf] * (p + r)
+            ubw += [inf] * (p + r)
             if k == N:
                 if not with_set:
                     g.append(X[N] - x_a)  # terminal equality (eq. 20h)
                     lbg += [0.0] * n
                     ubg += [0.0] * n
-                offset += n + p
+                offset += n + p + r
                 break
             last = with_set and k == N - 1
             controls = [U[k], S[k]] + ([s_a] if k == 0 else []) + ([s_n] if last else [])
@@ -170,16 +177,16 @@ class StagewiseNlp(NlpBase):
             # made the QPs degenerate (s >= 0 and s >= g both active on a region's boundary)
             lbw += list(s.input_min) + [-inf] * nd * blocks
             ubw += list(s.input_max) + [inf] * nd * blocks
-            offset += n + p + m + nd * blocks
+            offset += n + p + r + m + nd * blocks
             # gap-closing constraints first: FATROP's structure detection expects them so
             points = path(X[k], U[k])
-            g.append(ca.vertcat(X[k + 1] - points[:, -1], Y[k + 1] - Y[k]))
-            lbg += [0.0] * (n + p)
-            ubg += [0.0] * (n + p)
+            g.append(ca.vertcat(X[k + 1] - points[:, -1], Y[k + 1] - Y[k], V[k + 1] - U[k] if r else V[k + 1]))
+            lbg += [0.0] * (n + p + r)
+            ubg += [0.0] * (n + p + r)
             if k == 0:
-                g.append(X[0] - parts.x0)
-                lbg += [0.0] * n
-                ubg += [0.0] * n
+                g.append(ca.vertcat(X[0] - parts.x0, V[0] - parts.u_prev))
+                lbg += [0.0] * (n + r)
+                ubg += [0.0] * (n + r)
                 depth_a = parts.avoidance(x_a, u_a, N * s.sample_time)  # x_a = x(N): obstacles at t_N
                 g.append(s_a - depth_a)
                 lbg += [0.0] * nd
@@ -196,6 +203,11 @@ class StagewiseNlp(NlpBase):
                 cost += v_offset + counted * parts.mu * ca.dot(s_a, s_a) + regularise * ca.dot(s_a, s_a)
                 slack_vars.append(s_a)
                 slack_depths.append(depth_a)
+            if limited:  # |u(k) - u(k-1)| <= rate Ts; u(-1) the command in force, where there is one
+                change = (U[k] - V[k]) if k else parts.rate_on * (U[0] - V[0])
+                g.append(change[limited])
+                lbg += [-step for step in rate_step]
+                ubg += rate_step
             depth = parts.avoidance(X[k], U[k], k * s.sample_time)
             between = between_samples(parts, X[k], points, U[k], k * s.sample_time, s.sample_time)
             for rows in (depth, *between):  # one slack per region bounds g at x(k) and on the way on
@@ -238,12 +250,12 @@ class StagewiseNlp(NlpBase):
                               + counted * ca.sumsqr(ca.fmax(0, depth_a)))
         self.lbx, self.ubx = np.array(lbw, float), np.array(ubw, float)
         self.lbg, self.ubg = np.array(lbg, float), np.array(ubg, float)
-        self.layout = StagewiseLayout(n, m, p, N, parts.n_keep_in, nd, w.numel(), np.array(stage_start))
+        self.layout = StagewiseLayout(n, m, p, N, parts.n_keep_in, nd, w.numel(), np.array(stage_start), n_prev=r)
         par = parts.par
         g_start.append(len(lbg))
-        stages = {"nx": [n + p] * (N + 1),
-                  "nu": [int(stage_start[k + 1] - stage_start[k] - n - p) for k in range(N)] + [0],
-                  "ng": [int(g_start[k + 1] - g_start[k]) - (n + p if k < N else 0) for k in range(N + 1)]}
+        stages = {"nx": [n + p + r] * (N + 1),
+                  "nu": [int(stage_start[k + 1] - stage_start[k] - n - p - r) for k in range(N)] + [0],
+                  "ng": [int(g_start[k + 1] - g_start[k]) - (n + p + r if k < N else 0) for k in range(N + 1)]}
         self.problem = {"x": w, "p": par, "f": cost, "g": g}
         # the SQP paths' Gauss-Newton Hessian takes V_f as the least squares |residual|^2 (core/nlp/gauss_newton.py)
         problem = {**self.problem, GAUSS_NEWTON: (cost_without_v_f, *gauss_newton)} if with_set else self.problem
@@ -269,11 +281,20 @@ class StagewiseNlp(NlpBase):
         index = ca.Function("index", [w], [ca.vertcat(*slack_vars)])
         probe = np.arange(w.numel(), dtype=float)
         self._slack_index = np.asarray(index(probe), dtype=int).ravel()
+        # v(0..N) of a guess: the command in force, then the plan's own inputs (the gap rows hold from the start)
+        self._prev_value = Buffered(ca.Function("prev_of", [w, par], [ca.vertcat(parts.u_prev, *U)])) if r else None
         # blocks of the uniform stages 1..N-1 (N-2 with the terminal set, whose rows sit at stage N-1), for the dual
         # shift
         self._last_uniform = N - 2 if with_set else N - 1
         self._x_blocks = {k: slice(stage_start[k], stage_start[k + 1]) for k in range(1, self._last_uniform + 1)}
         self._g_blocks = {k: slice(g_start[k], g_start[k + 1]) for k in range(1, self._last_uniform + 1)}
+
+    def fill_slacks(self, w: np.ndarray, par: np.ndarray) -> np.ndarray:
+        """NlpBase.fill_slacks, and with input_rate_max each stage's v(k): the input before its own."""
+        if self._prev_value is not None:
+            index = self.layout.prev_index
+            w[index] = np.reshape(np.asarray(self._prev_value(w, par)[0]), index.shape)
+        return super().fill_slacks(w, par)
 
     def shift_duals(self, lam_x: np.ndarray, lam_g: np.ndarray, shift: int) -> tuple[np.ndarray, np.ndarray]:
         """Duals of stage k+shift moved to stage k, as the primal guess is shifted.
