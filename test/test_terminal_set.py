@@ -23,6 +23,8 @@ from nmpc_avoid_ros.core.problem.intervals import interval_evaluate
 from nmpc_avoid_ros.core.problem.models import make_model
 from nmpc_avoid_ros.core.problem.terminal import TerminalIngredients, local_controller
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import StepStatus
+from nmpc_avoid_ros.core.sample.step_result import StepResult
 
 SETTINGS = ControllerSettings(terminal="set")
 MODEL = make_model("van_der_pol")
@@ -126,6 +128,10 @@ def test_paper_run_with_the_terminal_set(paper_set):
     # the decrease with the set's shifted candidate (u(1..N-1), kappa(x(N))) holds at every sample
     assert sum(c["checked"] for c in run.certificate) == 49
     assert run.certificate[-1]["certificate_violations"] == 0
+    # each sample carries V_f of its plan and alpha(y_a): x(N) inside the set (StepResult.terminal_cost, _level)
+    v_f, alpha = run.terminal.T
+    assert np.all(alpha > 0) and np.all(v_f >= 0) and np.all(v_f <= alpha * (1 + 1e-6))
+    assert run.to_json()["terminal"]["level"] == alpha.tolist()
 
 
 def test_shifted_tail_is_the_local_controller_and_keeps_the_candidate_in_the_set(paper_set):
@@ -193,7 +199,7 @@ def test_sqp_paths_with_the_terminal_set_run_the_ipopt_loop(paper_set, solver, m
             for path in (solver, "ipopt")]
     assert set(runs[0].status) <= {"ok", "unconverged"} and runs[0].status.count("ok") >= 38
     assert settling_step(runs[0].x[:, 0], 5.0, 0.05) == settling_step(runs[1].x[:, 0], 5.0, 0.05)
-    np.testing.assert_allclose(runs[0].x, runs[1].x, atol=2e-2)
+    np.testing.assert_allclose(runs[0].x[-10:], runs[1].x[-10:], atol=1e-3)  # on the way an unconverged iterate
     if mu:
         assert max_abs_product(runs[0].x) <= 2.0005
     assert runs[0].certificate[-1]["certificate_violations"] == 0
@@ -273,3 +279,73 @@ def test_linear_model_with_the_set_settles_sooner_at_a_shorter_horizon(robot_set
     assert all(run.status == ["ok"] * 60 for run in runs.values())
     assert settle(runs["set", 2]) < settle(runs["equality", 4])
     assert runs["set", 2].certificate[-1]["certificate_violations"] == 0
+
+
+def _first_plan(settings_):
+    controller = NmpcController(settings_)
+    result = controller.step([-5.0, 0.0], [5.0])
+    return controller, result, controller.memory.plan
+
+
+def test_plan_continues_with_the_local_controller_and_the_result_carries_v_f(paper_set):
+    """With the set a kept plan runs on after x(N) with kappa(x, y_a) (Plan.tail: the warm start's shift and the
+    fallback's `shift` candidate), and the result carries V_f and alpha; the equality's plan rests at (u_a, x_a)."""
+    settings_, ingredients, problem = paper_set
+    controller, result, plan = _first_plan(settings_)
+    x_n, y_a = plan.states[-1], plan.y_a
+    inputs, states = plan.shifted(2)
+    u = local_controller(problem, ingredients, x_n, y_a)
+    np.testing.assert_allclose(inputs[-2], u, rtol=1e-12)
+    np.testing.assert_allclose(states[-2], np.asarray(problem.step(x_n, u)).ravel(), rtol=1e-12)
+    np.testing.assert_allclose(inputs[-1], local_controller(problem, ingredients, states[-2], y_a), rtol=1e-12)
+    e = x_n - plan.x_a
+    assert result.terminal_cost == pytest.approx(e @ ingredients.cost_matrix(y_a) @ e, rel=1e-12)
+    assert result.terminal_level == pytest.approx(ingredients.alpha(y_a), rel=1e-12)
+    assert result.terminal_inside is True
+    _, result, plan = _first_plan(settings_.replace(terminal="equality"))
+    assert plan.tail is None and np.isnan(result.terminal_cost) and result.terminal_inside is None
+    inputs, states = plan.shifted(2)
+    np.testing.assert_array_equal(inputs[-2:], [plan.u_a, plan.u_a])
+    np.testing.assert_array_equal(states[-2:], [plan.x_a, plan.x_a])
+
+
+def test_budget_cut_iterate_and_fallback_candidates_continue_with_kappa(paper_set):
+    """A budget-cut iterate's shift ends with kappa(x(N)) (core/sample/warm_start.py), and the fallback's `steady`
+    candidate under the set is the local controller from the current state (core/sample/fallback.py)."""
+    from nmpc_avoid_ros.core.sample.warm_start import initial_guess
+
+    settings_, ingredients, problem = paper_set
+    controller, _, plan = _first_plan(settings_)
+    nlp, x = controller.nlp, plan.states[1]
+    w = nlp.layout.join_w(plan.inputs, plan.states[1:], plan.y_a, None, x0=plan.states[0])
+    pending = (w, np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size))
+    guess = initial_guess(nlp, x, np.array([5.0]), None, pending, settings_, MODEL, tail=controller._tail)[0]
+    U, X, _, _ = nlp.layout.split_w(guess)
+    u = local_controller(problem, ingredients, plan.states[-1], plan.y_a)
+    np.testing.assert_allclose(U[-1], u, rtol=1e-12)
+    np.testing.assert_allclose(X[-1], np.asarray(problem.step(plan.states[-1], u)).ravel(), rtol=1e-12)
+    local = controller._tail.rollout(x, plan.y_a, plan.x_a, plan.u_a, settings_.horizon, [-6.0], [6.0])
+    np.testing.assert_allclose(local[0][0], local_controller(problem, ingredients, x, plan.y_a), rtol=1e-12)
+    par = controller.parameters(x, np.array([5.0]))
+    choice = controller.fallback.choose(x, par, None, local[0], False, recover=False)
+    assert choice.kind == "steady" and np.array_equal(choice.inputs, local[0])
+    np.testing.assert_allclose(choice.states[1:], local[1], rtol=1e-9)
+
+
+def test_diagnostics_carry_the_terminal_cost_and_level():
+    from builtin_interfaces.msg import Time
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from nmpc_avoid_ros.nodes.controller_views import diagnostic_array
+
+    def values(result):
+        msg = diagnostic_array("/c", Time(), DiagnosticStatus.OK, "ok", {}, result, 0.0, 0.0, None)
+        return {v.key: v.value for v in msg.status[0].values}
+
+    result = StepResult(np.zeros(1), np.zeros((6, 2)), np.zeros((5, 1)), np.zeros(1), np.zeros(2), np.zeros(1),
+                        0.0, 0.0, 0.0, StepStatus.OK, "0", 3, 1e-3)
+    equality = values(result)
+    assert (equality["terminal_cost"], equality["terminal_level"], equality["terminal_inside"]) == ("nan", "nan", "")
+    result.terminal_cost, result.terminal_level = 12.5, 40.0
+    keys = ("terminal_cost", "terminal_level", "terminal_inside")
+    assert tuple(values(result)[key] for key in keys) == ("12.5", "40", "True")

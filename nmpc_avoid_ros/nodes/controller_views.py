@@ -123,6 +123,10 @@ def diagnostic_array(name: str, stamp: Time, level: bytes, message: str, values:
             # gave the command; solve_time_ms counts both with the sample's own search
             "feedback": str(result.feedback or ""), "feedback_ms": f"{result.feedback_time * 1e3:.4f}",
             "preparation_ms": f"{result.preparation_time * 1e3:.3f}",
+            # terminal: set (docs/terminal_set.md): V_f of the plan's x(N), alpha(y_a), x(N) in the set; nan, nan,
+            # '' with the equality
+            "terminal_cost": f"{result.terminal_cost:.6g}", "terminal_level": f"{result.terminal_level:.6g}",
+            "terminal_inside": "" if result.terminal_inside is None else str(result.terminal_inside),
         })
     if cert is not None:
         values.update({"value_function": repr(cert.value_function), "decrease": repr(cert.decrease),

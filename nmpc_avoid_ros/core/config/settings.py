@@ -73,7 +73,7 @@ class ControllerSettings:
         "equality", "terminal condition of the plan: equality (x(N) = x_a, the paper's simplified scheme eq. 19-20) "
                     "or set (the general scheme eq. 7-8: terminal cost V_f and a certified terminal set, computed "
                     "offline and cached; models with a closed-form steady state and one output, or linear ones; "
-                    "solver ipopt or fatrop; docs/terminal_set.md)", choices=TERMINALS)
+                    "every solver path; docs/terminal_set.md)", choices=TERMINALS)
     discretization: str = setting("euler", "prediction model discretisation: euler (as in the paper) or rk4",
                                   choices=DISCRETISATIONS)
     integration_steps: int = setting(

@@ -297,6 +297,9 @@ class ClosedLoopRun:
     feedback_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
     preparation_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
     feedback: list[str] = field(default_factory=list)
+    # [K, 2] with `terminal: set`: V_f of each applied plan's last state and alpha(y_a) (StepResult.terminal_cost,
+    # terminal_level); NaN with the equality
+    terminal: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @classmethod
     def from_trajectory(cls, run: Trajectory, info: dict | None = None) -> ClosedLoopRun:
@@ -309,7 +312,8 @@ class ClosedLoopRun:
                    run.sample_time, dict(info or {}), run.regions, run.stopped, [r.search for r in res],
                    [r.predicted_violation for r in res], feedback_time=np.array([r.feedback_time for r in res]),
                    preparation_time=np.array([r.preparation_time for r in res]),
-                   feedback=[str(r.feedback or "") for r in res])
+                   feedback=[str(r.feedback or "") for r in res],
+                   terminal=np.array([(r.terminal_cost, r.terminal_level) for r in res]).reshape(K, 2))
 
     def to_json(self) -> dict:
         """The JSON layout of `simulate --json` (lists of rows, solve time in ms)."""
@@ -330,6 +334,7 @@ class ClosedLoopRun:
             "sample_time": self.sample_time,
             "info": self.info,
             "certificate": self.certificate,
+            "terminal": {"cost": self.terminal[:, 0].tolist(), "level": self.terminal[:, 1].tolist()},
         }
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -156,3 +157,32 @@ class ShiftedTail:
             return np.asarray(u_a, float), np.asarray(x_a, float)
         u = local_controller(self.problem, self.ingredients, x_n, np.ravel(y_a))
         return u, np.asarray(self.step(x_n, u), float).ravel()
+
+    def rollout(self, x_n: np.ndarray, y_a: np.ndarray, x_a: np.ndarray, u_a: np.ndarray, steps: int,
+                input_min: np.ndarray, input_max: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The set scheme's continuation of a plan after x(N) [n]: `steps` inputs of the local controller
+        u = u_a + K(y_a)(x - x_a) clipped into [input_min, input_max] [steps, m] and the states they lead to
+        x(N+1..N+steps) [steps, n]; None with the equality (a plan rests at (u_a, x_a) after its end) or where the
+        continuation is not finite (a plan far outside the set)."""
+        if not self.with_set:
+            return None
+        y = np.ravel(y_a)
+        gain = self.problem.gain(y, self.ingredients.cost_matrix(y), self.ingredients.margin)
+        x_a, u_a = np.ravel(x_a), np.ravel(u_a)
+        x = np.asarray(x_n, float).ravel()
+        inputs, states = [], []
+        for _ in range(steps):
+            u = np.clip(u_a + gain @ (x - x_a), input_min, input_max)
+            x = np.asarray(self.step(x, u), float).ravel()
+            inputs.append(u)
+            states.append(x)
+        inputs, states = np.array(inputs), np.array(states)
+        return (inputs, states) if np.all(np.isfinite(states)) else None
+
+    def values(self, x_n: np.ndarray, y_a: np.ndarray, x_a: np.ndarray, u_a: np.ndarray) -> tuple[float, float]:
+        """(V_f(x(N) - x_a, y_a), alpha(y_a)) of a plan ending in x(N) [n]; (nan, nan) with the equality."""
+        if not self.with_set or not np.all(np.isfinite(y_a)):
+            return math.nan, math.nan
+        e = np.asarray(x_n, float).ravel() - np.ravel(x_a)
+        level = self.ingredients.alpha(y_a, np.concatenate([np.ravel(x_a), np.ravel(u_a)]))
+        return float(e @ self.ingredients.cost_matrix(y_a) @ e), level

@@ -3,11 +3,13 @@ guarded, or the fallback; a sample without a new state coasts on the plan."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 
 from ..nlp.search import Candidate, SearchReport
+from ..nlp.terminal import ShiftedTail
 from ..nlp.tiers import TieredNlp
 from .memory import COUNTED, RESET, Sample
 from .status import StepStatus
@@ -32,7 +34,8 @@ class SampleAnswers:
         U, X, y_a, _ = best.nlp.layout.split_w(best.w)
         x_a, u_a = (v.copy() for v in best.nlp.steady(best.w))
         costs = tuple(float(c[0]) for c in best.nlp.terms(best.w, sample.par))
-        carry.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0, costs)
+        carry.plan = self._continued(Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0,
+                                          costs))
         regular = sample.regular
         status = StepStatus.OK if best.solved else StepStatus.TRUNCATED if best.budget_cut else StepStatus.UNCONVERGED
         result = self._result(carry.plan, sample.x, 0, status, regular.solver_status, regular.iterations,
@@ -96,17 +99,19 @@ class SampleAnswers:
         status, iterations, budget_cut = (OUTSIDE_SOLVE_DOMAIN, 0, False) if last is None else (
             last.solver_status, last.iterations, last.budget_cut)
         plan, carry.aged = carry.plan, True  # no plan kept: it ages by this sample
-        shifted = u_a = None
+        shifted = u_a = local = None
         N = H = self.fallback.horizon  # the selector simulates N inputs: of a long plan, its first N
         age = 0 if plan is None else plan.age + 1
         if plan is not None:
             N = len(plan.inputs)
             shifted = plan.shifted(age)[0][:H]
-            u_a = plan.u_a
+            # with terminal: set the steady candidate is the local controller from x (None: u_a held)
+            local = self._tail.rollout(x, plan.y_a, plan.x_a, plan.u_a, H, self._input_lo, self._input_hi)
+            u_a = plan.u_a if local is None else local[0]
         choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and age < N, sample.in_domain,
                                       sample.end)
         sample.seconds += choice.solve_time
-        if plan is not None and choice.kind in ("shift", "steady"):
+        if plan is not None and (choice.kind == "shift" or (choice.kind == "steady" and local is None)):
             result = self._result(plan, x, age, StepStatus(f"fallback_{choice.kind}"), status, iterations,
                                   budget_cut)
         else:
@@ -119,6 +124,25 @@ class SampleAnswers:
         result.fallback_reason, result.fallback_predicted = choice.reason, dict(choice.predicted)
         result.predicted_violation = choice.violation
         result.horizon = 0 if last is None else last.nlp.layout.horizon
+        return result
+
+    @functools.cached_property
+    def _tail(self) -> ShiftedTail:
+        """The plan's continuation after x(N): the local controller with `terminal: set` (core/nlp/terminal.py)."""
+        return ShiftedTail(self.settings, self.model)
+
+    def _continued(self, plan: Plan) -> Plan:
+        """`plan` with its continuation after x(N) (Plan.tail) where the scheme is `terminal: set`: the shift of the
+        warm start, of the fallback's `shift` candidate and of an aged plan then runs on with kappa(x, y_a) instead
+        of holding u_a; with the equality unchanged (None)."""
+        plan.tail = self._tail.rollout(plan.states[-1], plan.y_a, plan.x_a, plan.u_a, len(plan.inputs),
+                                       self._input_lo, self._input_hi)
+        return plan
+
+    def _terminal_values(self, result: StepResult) -> StepResult:
+        """`result` with V_f of its last state and alpha(y_a) (NaN with the equality: StepResult.terminal_cost)."""
+        result.terminal_cost, result.terminal_level = self._tail.values(result.states[-1], result.y_a, result.x_a,
+                                                                        result.u_a)
         return result
 
     def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
@@ -151,4 +175,4 @@ class SampleAnswers:
         result = self._result(plan, predicted, age, status, "no_new_state", 0, False)
         carry.command, carry.aged = result.u.copy(), True
         self.memory.advance(carry)
-        return result
+        return self._terminal_values(result)

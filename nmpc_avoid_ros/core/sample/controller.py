@@ -221,6 +221,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         result.target = sample.y_t
         result.solve_time = sample.seconds + result.preparation_time
         result.delay, result.measured_state = sample.delay, sample.measured
+        self._terminal_values(result)
         carry = sample.carry
         carry.command, carry.last, carry.prepared = result.u.copy(), sample, None
         self.memory.advance(carry)
@@ -313,8 +314,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         U, X, y_a, _ = nlp.layout.split_w(w)
         x_a, u_a = (v.copy() for v in nlp.steady(w))
         costs = plan.costs if prepared.costs is None else prepared.costs.at(w, sample.par)  # the certificate's V_N
-        sample.carry.plan = Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, plan.lam_x, plan.lam_g,
-                                 0, costs)
+        sample.carry.plan = self._continued(Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a,
+                                                 plan.lam_x, plan.lam_g, 0, costs))
         result = self._result(sample.carry.plan, sample.x, 0, StepStatus.OK, ANSWERED_STATUS, 0, False)
         result.horizon, result.feedback = nlp.layout.horizon, outcome
         # what was searched for this sample, ahead of it (escapes and passage included: the campaign counts them)

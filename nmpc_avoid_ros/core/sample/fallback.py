@@ -4,8 +4,10 @@ Candidates, in order of preference among those predicting the least violation (v
 VIOLATION_TOLERANCE count as none):
 
 * ``shift``: the rest of the last plan, then its u_a (the candidate of the paper's recursive
-  feasibility proof; available while the plan lasts);
-* ``steady``: u_a of the last plan, held;
+  feasibility proof; available while the plan lasts); with `terminal: set` the plan's continuation by the local
+  controller kappa(x, y_a) = u_a + K(y_a)(x - x_a) instead of u_a (Plan.tail, the proof's candidate there);
+* ``steady``: u_a of the last plan, held; with `terminal: set` the local controller from the current state (its
+  inputs along the predicted states: core/nlp/terminal.py ShiftedTail.rollout);
 * ``safe``: the model's configured safe input (`safe_input`; zero clipped to the input box if unset);
 * ``recovery``: a short solve that minimises the predicted penalty and constraint violation over
   the input sequence alone (input box only, so it is always feasible); tried only when every
@@ -195,7 +197,8 @@ class FallbackSelector:
     def choose(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray | None, u_a: np.ndarray | None,
                plan_left: bool, recover: bool = True, end: float = math.inf) -> FallbackChoice:
         """The least-violating candidate for state x [n]. `plan_inputs` [H, m]: the shifted plan's
-        inputs (padded with u_a); `plan_left`: the shifted plan still has inputs of its own; `recover`
+        inputs (padded with u_a); `u_a` [m], held, or the `steady` candidate's inputs [H, m] (the local controller
+        with `terminal: set`); `plan_left`: the shifted plan still has inputs of its own; `recover`
         False: no recovery solve (a state outside the solve domain is handed to no solver); `end`: the
         recovery solve's end (time.perf_counter s)."""
         H = self.horizon
@@ -203,7 +206,7 @@ class FallbackSelector:
         if plan_inputs is not None and plan_left:
             sequences["shift"] = np.asarray(plan_inputs, float)
         if u_a is not None:
-            sequences["steady"] = np.tile(u_a, (H, 1))
+            sequences["steady"] = np.tile(u_a, (H, 1)) if np.ndim(u_a) == 1 else np.asarray(u_a, float)
         sequences["safe"] = np.tile(self.safe_input, (H, 1))
         predicted = {kind: self.predict(x, seq, par) for kind, seq in sequences.items()}
         seconds = 0.0

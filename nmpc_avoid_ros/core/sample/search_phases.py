@@ -107,7 +107,8 @@ class SearchPhases:
         """A start of `nlp` from the warm-start rules (core/sample/warm_start.py) at this sample."""
         regular, carry = nlp.regular if isinstance(nlp, TieredNlp) else nlp, sample.carry
         w0, lam_x0, lam_g0 = initial_guess(regular, sample.x, sample.y_t, carry.plan, carry.pending,
-                                           self.settings, self.model, keep_duals=regular is self._active(carry))
+                                           self.settings, self.model, keep_duals=regular is self._active(carry),
+                                           tail=self._tail)
         return Start(label, nlp, regular.fill_slacks(w0, sample.par), lam_x0, lam_g0, budget, cold)
 
     def _escape_due(self, base: Candidate, previous_y_a: np.ndarray | None, sample: Sample) -> bool:

@@ -15,6 +15,9 @@ from ..errors import InputError
 from ..nlp.search import SearchReport
 from .status import FeedbackOutcome, StepStatus
 
+#: StepResult.terminal_inside: how far beyond the terminal set's level (relative) x(N) still counts as inside
+INSIDE_TOLERANCE = 1e-6
+
 
 @dataclass
 class StepResult:
@@ -52,6 +55,9 @@ class StepResult:
         feedback_time: s from the sample's start to its command when the prepared plan answered (0 otherwise);
         preparation_time: s the preparation of this sample took between the samples (solver calls and the law);
             solve_time counts both, with the solver time of a search the sample ran itself.
+        terminal_cost, terminal_level: with `terminal: set`, V_f(x(N) - x_a, y_a) of the applied plan's last state
+            states[-1] and alpha(y_a), the terminal set's level (docs/terminal_set.md); NaN with the equality or
+            without y_a. `terminal_inside`: V_f <= alpha to INSIDE_TOLERANCE (None where they are NaN).
     """
 
     u: np.ndarray
@@ -81,6 +87,16 @@ class StepResult:
     feedback: FeedbackOutcome | None = None
     feedback_time: float = 0.0
     preparation_time: float = 0.0
+    terminal_cost: float = math.nan
+    terminal_level: float = math.nan
+
+    @property
+    def terminal_inside(self) -> bool | None:
+        """x(N) in the terminal set: the NLP's row V_f / alpha - 1 <= INSIDE_TOLERANCE (a plan on the set's boundary
+        meets it to the solver's tolerance); None with the equality (no set) or without a plan."""
+        if math.isnan(self.terminal_cost) or math.isnan(self.terminal_level):
+            return None
+        return self.terminal_cost / self.terminal_level - 1 <= INSIDE_TOLERANCE
 
     @property
     def escape(self) -> str:
@@ -105,12 +121,19 @@ class Plan:
     lam_g: np.ndarray
     age: int = 0
     costs: tuple[float, float, float] = field(default=(math.nan, math.nan, math.nan))
+    #: with `terminal: set`, the plan continued after x(N) by the local controller kappa (core/nlp/terminal.py
+    #: ShiftedTail.rollout): inputs [K, m] and the states x(N+1..N+K) [K, n]; None: it rests at (u_a, x_a)
+    tail: tuple[np.ndarray, np.ndarray] | None = None
 
     def shifted(self, by: int) -> tuple[np.ndarray, np.ndarray]:
-        """The plan seen `by` >= 0 samples later: (inputs [N, m]: u(by..N-1), then u_a; states [N+1, n]:
-        x(by..N), then x_a). by = 0 gives copies of inputs and states; the warm start shifts by age + 1
-        (a prepared plan's age is -1: core/sample/feedback.py), an applied plan by its age."""
-        return shifted_rows(self.inputs, self.u_a, by), shifted_rows(self.states, self.x_a, by)
+        """The plan seen `by` >= 0 samples later: (inputs [N, m]: u(by..N-1), then the tail's, then u_a; states
+        [N+1, n]: x(by..N), then the tail's, then x_a). by = 0 gives copies of inputs and states; the warm start
+        shifts by age + 1 (a prepared plan's age is -1: core/sample/feedback.py), an applied plan by its age."""
+        if self.tail is None:
+            return shifted_rows(self.inputs, self.u_a, by), shifted_rows(self.states, self.x_a, by)
+        N = len(self.inputs)
+        return (shifted_rows(np.vstack([self.inputs, self.tail[0]]), self.u_a, by)[:N],
+                shifted_rows(np.vstack([self.states, self.tail[1]]), self.x_a, by)[:N + 1])
 
 
 def shifted_rows(rows: np.ndarray, last: np.ndarray, by: int) -> np.ndarray:

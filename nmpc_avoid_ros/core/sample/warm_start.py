@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..config.settings import ControllerSettings
+from ..nlp.terminal import ShiftedTail
 from ..nlp.tracking import NlpBase
 from ..problem.models import Model
 from .step_result import Plan, shifted_rows
@@ -17,12 +18,15 @@ from .step_result import Plan, shifted_rows
 
 def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | None,
                   pending: tuple[np.ndarray, np.ndarray, np.ndarray] | None, settings: ControllerSettings,
-                  model: Model, keep_duals: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  model: Model, keep_duals: bool = True, tail: ShiftedTail | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(w [n_w], lam_x [n_w], lam_g [n_g]) of `nlp` for the state x [n] and target y_t [p].
 
     - `pending`, the last iterate of a budget-cut solve that could not be applied (w, lam_x, lam_g):
-      shifted by one sample, so that the optimisation goes on where the budget stopped it;
-    - else the shifted `plan` (u(1..N-1), u_a; x(2..N), x_a), its multipliers shifted with it when
+      shifted by one sample, so that the optimisation goes on where the budget stopped it (its last stage: u_a, x_a,
+      or with `terminal: set` the local controller's kappa(x(N), y_a) and the state it leads to, from `tail`);
+    - else the shifted `plan` (u(1..N-1), u_a; x(2..N), x_a; with `terminal: set` its continuation by kappa in
+      place of u_a, x_a: Plan.tail), its multipliers shifted with it when
       `keep_duals` (the plan was made by `nlp`; another NLP's multipliers do not fit: zeros);
     - else a straight line from x to the steady state of y_t, clipped into the bounds.
 
@@ -39,7 +43,10 @@ def initial_guess(nlp: NlpBase, x: np.ndarray, y_t: np.ndarray, plan: Plan | Non
         w, lam_x, lam_g = pending
         U, X, y_a, rest = layout.split_w(w)
         x_a, u_a = (v.copy() for v in nlp.steady(w))
-        U, X = shifted_rows(U, u_a, 1), shifted_rows(X, x_a, 1)
+        continued = None if tail is None else tail.rollout(X[-1], y_a, x_a, u_a, 1, settings.input_min,
+                                                           settings.input_max)
+        U, X = (shifted_rows(U, u_a, 1), shifted_rows(X, x_a, 1)) if continued is None else (
+            np.vstack([U[1:], continued[0]]), np.vstack([X[1:], continued[1]]))
         lam_x, lam_g = nlp.shift_duals(lam_x, lam_g, 1)
         return layout.join_w(U, X, y_a, rest, x0=x), lam_x, lam_g
     if plan is None:
