@@ -11,7 +11,10 @@ budget and keeps the lowest-cost plan that satisfies the hard constraints.
 When (see `EscapeGuesses.should_try`): the steady-state segment from y_a to the target is blocked
 by an active region AND y_a has stalled (moved less than `STALL_TOLERANCE` in the last sample).
 Without a blocking region (the paper's loops: the keep-in |x1 x2| <= 2 never covers a steady
-state, where x2 = 0) nothing is tried.
+state, where x2 = 0) nothing is tried, except for a car-like model (`EscapeGuesses.manoeuvres`: a planar
+model with a heading among its outputs and `rest` rows, which cannot move sideways): with y_a stalled
+more than PARK_OFFSET short of the target, it tries manoeuvres (`manoeuvre_guesses`): a sideways or
+heading offset is removed only by backing up and coming in again, which no small change of its plan finds.
 """
 
 from __future__ import annotations
@@ -40,6 +43,14 @@ DETOUR_MARGIN = 0.25
 #: a steady state this far outside lambda Z still counts as in it (a solved y_a on the box's edge
 #: is feasible to the solver's tolerance, not exactly)
 BOX_TOLERANCE = 1e-6
+#: a car-like model whose stalled y_a is farther than this from the target (output units, angles the short
+#: way round) tries the manoeuvre guesses (the campaign counts a run within 0.05 as converged; its runs that
+#: came in straight parked 0.005-0.03 from their goals)
+PARK_OFFSET = 0.03
+#: the manoeuvre guesses pass through the target's pose moved this far (m) behind and ahead along its heading
+MANOEUVRE_REACH = (0.3, 0.6)
+#: the label prefix of the manoeuvre guesses
+MANOEUVRE = "manoeuvre_"
 
 
 def _segment(y_from: np.ndarray, y_to: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -76,6 +87,10 @@ class EscapeGuesses:
         self.model, self.settings = model, settings
         self.horizon = nlp.layout.horizon
         self.available = model.steady_state is not None
+        planar = model.planar
+        #: a car-like model (a heading output, `rest` rows: it cannot move sideways, Assumption 5 fails at rest)
+        self.manoeuvres = bool(self.available and model.angle_outputs and model.rest is not None and
+                               planar is not None and planar.yaw is not None)
         if not self.available:
             return
         lam = settings.steady_state_scale
@@ -95,12 +110,22 @@ class EscapeGuesses:
         self._steady = Buffered(ca.Function("steady", [y], [x_s, u_s]))
 
     def should_try(self, y_a: np.ndarray, y_a_before: np.ndarray | None, y_t: np.ndarray, par: np.ndarray) -> bool:
-        """Stalled (y_a moved < STALL_TOLERANCE since the last sample) with a region across the way."""
+        """Stalled (y_a moved < STALL_TOLERANCE since the last sample) with a region across the way, or for a
+        car-like model parked short of the target (`parked_short`)."""
         if not self.available or y_a_before is None:
             return False
         if np.max(np.abs(y_a - y_a_before)) >= STALL_TOLERANCE:
             return False
-        return bool(self.beyond_blocks(y_a, self.aim(y_t), par))
+        aim = self.aim(y_t)
+        return bool(self.beyond_blocks(y_a, aim, par)) or self.parked_short(y_a, aim)
+
+    def parked_short(self, y_a: np.ndarray, aim: np.ndarray) -> bool:
+        """A car-like model (`manoeuvres`) whose y_a lies more than PARK_OFFSET from `aim` (angles the short way).
+        Not only once the car rests there: while it still comes in, its plan costs more than the rest, and a
+        manoeuvre that reaches y_t can cost less (campaign bicycle-0023: y_a stalled 0.139 short as the car turned in,
+        and a manoeuvre guess was kept; once it rested at y_a, every manoeuvre cost more than the rest, as the
+        N = 20 plan counts it, and the solver came back to the rest from each guess)."""
+        return self.manoeuvres and float(np.linalg.norm(self.model.output_error(y_a, aim))) > PARK_OFFSET
 
     def aim(self, y_t: np.ndarray) -> np.ndarray:
         """The output [p] the segments run to: y_t, or for a y_t whose steady state is outside lambda Z
@@ -216,15 +241,40 @@ class EscapeGuesses:
 
     def guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
                 regions: Sequence[Region]) -> list[Guess]:
-        """Candidate guesses: y_a beyond each blocking stretch, straight and around each region on either side."""
+        """Candidate guesses: y_a beyond each blocking stretch, straight and around each region on either side;
+        with no blocking stretch, a car-like model parked short of the target: the manoeuvres to it."""
         out = []
-        for i, y_new in enumerate(self.beyond_blocks(y_a, self.aim(y_t), par)):
+        aim = self.aim(y_t)
+        beyond = self.beyond_blocks(y_a, aim, par)
+        if not beyond and self.parked_short(y_a, aim):
+            return self.manoeuvre_guesses(x, aim)
+        for i, y_new in enumerate(beyond):
             x_new, u_new = (v.copy() for v in self._steady(y_new))
             out.append(Guess(f"beyond{i}", y_new, self._path(x, [], x_new), np.tile(u_new, (self.horizon, 1))))
             for j, region in enumerate(regions):
                 for side, waypoint in zip(("left", "right"), self._detours(x, x_new, y_a, y_new, region)):
                     out.append(Guess(f"beyond{i}_{side}_of_region{j}", y_new, self._path(x, [waypoint], x_new),
                                      np.tile(u_new, (self.horizon, 1))))
+        return out
+
+    def manoeuvre_guesses(self, x: np.ndarray, y_goal: np.ndarray) -> list[Guess]:
+        """A car-like model's ways to the steady state of y_goal [p] from beside it: through the goal pose moved
+        back (reversing past it, then coming in forwards) or ahead (overshooting, then backing in) by each of
+        MANOEUVRE_REACH, y_a at y_goal. The states run along the polyline, not along the dynamics: the solver
+        finds the steering (measured on campaign scene bicycle-0034, resting 0.057 m beside its goal, with y_a held
+        at the goal by kappa 1e4: each converged to a back-and-forth manoeuvre ending there, 25-40 FATROP
+        iterations; with the config's kappa 100 each came back to the rest, which costs less there)."""
+        planar = self.model.planar
+        x_g, u_g = (v.copy() for v in self._steady(y_goal))
+        heading = np.array([np.cos(x_g[planar.yaw]), np.sin(x_g[planar.yaw])])
+        out = []
+        for reach in MANOEUVRE_REACH:
+            for side, sign in (("behind", -1.0), ("ahead", 1.0)):
+                via = x_g.copy()
+                via[[planar.x, planar.y]] += sign * reach * heading
+                via = np.clip(via, self.settings.state_min, self.settings.state_max)
+                out.append(Guess(f"{MANOEUVRE}{side}_{reach:g}", y_goal.copy(), self._path(x, [via], x_g),
+                                 np.tile(u_g, (self.horizon, 1))))
         return out
 
     def _detours(self, x: np.ndarray, x_new: np.ndarray, y_a: np.ndarray, y_new: np.ndarray,
@@ -309,5 +359,14 @@ DEPTH_ALLOWANCE = 1e-4
 
 def escape_admission(base: Candidate) -> Callable[[Candidate], str]:
     """The escape's admission rule for `search`: a candidate may not buy progress with penetration (no
-    more predicted depth than the base plan's + DEPTH_ALLOWANCE)."""
-    return lambda candidate: "" if candidate.depth <= base.depth + DEPTH_ALLOWANCE else "penetrates more"
+    more predicted depth than the base plan's + DEPTH_ALLOWANCE); a manoeuvre must move y_a (by at least
+    STALL_TOLERANCE): one that came back to the base's rest is the base again, and kept on a cost lower by
+    rounding it ended the escape without its wait, so that it ran again every sample (measured in the campaign)."""
+    y_base = base.nlp.layout.y_a(base.w)
+
+    def admit(candidate: Candidate) -> str:
+        if candidate.depth > base.depth + DEPTH_ALLOWANCE:
+            return "penetrates more"
+        moved = np.max(np.abs(candidate.nlp.layout.y_a(candidate.w) - y_base)) >= STALL_TOLERANCE
+        return "" if moved or not candidate.label.startswith(MANOEUVRE) else "back at the rest"
+    return admit
