@@ -292,6 +292,7 @@ class LossyRelay:
             self.relayed += 1
 
 
+@pytest.mark.serial  # state gaps and delays in real time: alone on the machine
 def test_state_loss_and_delay_keep_the_loop_stable_and_inside_the_constraint(ros_graph):
     _, _, start, probe = ros_graph
     p = probe()
@@ -348,6 +349,7 @@ def test_state_loss_and_delay_keep_the_loop_stable_and_inside_the_constraint(ros
 # a starved solver
 
 
+@pytest.mark.serial  # one command per sample in real time: alone on the machine
 def test_a_starved_solver_still_commands_every_sample_through_the_fallback(ros_graph):
     _, _, start, probe = ros_graph
     p = probe()

@@ -42,7 +42,9 @@ def wall_distance(world_file: str, xy: np.ndarray) -> float:
     ("worlds/room.yaml", "worlds/room_walkers.yaml", "unicycle_world.yaml"),
     ("worlds/pillars.yaml", "", "unicycle_world.yaml"),
     # the car-like robot (turning radius 0.92 m) among the walkers: launch/world.launch.py config:=...
-    ("worlds/room.yaml", "worlds/room_walkers.yaml", "bicycle_world.yaml")], ids=["room", "pillars", "car-room"])
+    # (its body's clearance in real time: alone on the machine; beside another test it lost 0.14 m, 0.16 m from a wall)
+    pytest.param("worlds/room.yaml", "worlds/room_walkers.yaml", "bicycle_world.yaml", marks=pytest.mark.serial)],
+    ids=["room", "pillars", "car-room"])
 def test_the_robots_reach_their_goal_in_the_shipped_worlds(ros_graph, monkeypatch, world, walkers, config):
     _, _, start, probe = ros_graph
     p = probe()
