@@ -241,3 +241,29 @@ def test_the_car_parks_at_its_goal_without_a_fallback():
         x = plant.advance(x, np.asarray(result.u), settings.sample_time)
     assert all(s == StepStatus.OK for s in statuses), statuses
     assert np.linalg.norm(model.output_error(x, goal)) < 0.05  # the output is the pose x
+
+
+#: campaign scene bicycle-0011: the car at rest facing away from its goal pose, 4 ellipses (two of them across the way)
+BICYCLE_0011 = {"x0": [-2.418849095835106, -2.8369122059315197, 2.759175607287441],
+                "goal": [-8.085699866733849, -4.2106939889952315, 1.1740381740578654],
+                "ellipses": [((-5.097365730158833, -4.020529178998495), (1.6595889830529682, 0.9462972632230005),
+                              2.146019465901913),
+                             ((-4.465313515782553, -3.5756299761652612), (0.9395079436199979, 1.9968618621029153),
+                              2.593795718489984),
+                             ((4.9686665807955634, 4.1105841727689025), (0.7437162776584737, 0.7517587796845995),
+                              3.1200378920839436),
+                             ((-3.156601181362248, 4.877003688691204), (0.43139807974659683, 1.4661562410158262),
+                              2.934292637698942)]}
+
+
+def test_a_cold_start_of_the_car_with_rate_limits_gets_the_iterations_it_needs():
+    """Campaign scene bicycle-0011 with steering-rate and acceleration limits: from the resting plan FATROP needs about
+    220 iterations on the 4-ellipse tier; a cold start capped at the regular 200 stopped short every sample (and
+    IPOPT's reference too), so the car never moved. Cold FATROP starts of such a model get FAST_COLD_ITERATIONS
+    (core/nlp/stagewise.py), still cut at max_solve_time (here long: interpreted solvers, the iterations under test)."""
+    _, controller = bicycle_controller(input_rate_max=(1.0, 1.5), max_solve_time=2.0)
+    regions = [Ellipse(center, axes, yaw, "output") for center, axes, yaw in BICYCLE_0011["ellipses"]]
+    result = controller.step(np.array(BICYCLE_0011["x0"]), np.array(BICYCLE_0011["goal"]), regions, time=0.0)
+    first = result.search.tried[0]
+    assert (first.label, first.solver_status, first.outcome) == ("rest", "0", Outcome.KEPT), result.search.tried
+    assert result.status == StepStatus.OK

@@ -55,6 +55,10 @@ COLD_START_ITERATIONS = 200
 #: near its goal, with integration_steps 4 and 2). At 1e-3 such rows pass on to the stage before (at last to y_a,
 #: which holds them), as at rest.
 RANK_TOLERANCE = 1e-3
+#: the iteration cap of such a model's cold FATROP starts (each still cut at max_solve_time, Start.time_limit): the
+#: car at rest facing away from its goal among 4 ellipses with steering-rate limits needed ~220 (0.14 s), 200 stopped
+#: it short every sample (docs/campaign/bicycle/README.md)
+FAST_COLD_ITERATIONS = 1000
 #: the barrier parameter a warm FATROP solve of such a model starts from: the car-like robot's median shifted plan
 #: among 4 ellipses took 10 iterations from FATROP's default 0.1, 6 from 1e-2, 4 from 1e-3 (BENCHMARKS.md). Cold
 #: starts keep the default (from the resting plan 1e-3 did not converge in 200 iterations)
@@ -264,7 +268,8 @@ class StagewiseNlp(NlpBase):
             # stages' equality rows, and a warm solve's barrier (RANK_TOLERANCE, WARM_BARRIER); cold starts keep
             # FATROP's own barrier, on a twin solver of the same compiled library
             self.fatrop_options = {"linsol_lu_fact_tol": RANK_TOLERANCE}
-            self.cold_solver, _ = self._make_solver(problem, s, stages)
+            cold = s.replace(max_iterations=max(s.max_iterations, FAST_COLD_ITERATIONS))
+            self.cold_solver, _ = self._make_solver(problem, cold, stages)
             self.fatrop_options = {**self.fatrop_options, "mu_init": WARM_BARRIER}
         self.solver, self.solver_info = self._make_solver(problem, s, stages)
         if s.solver.startswith("sqp") and s.max_iterations < COLD_START_ITERATIONS:
