@@ -139,7 +139,7 @@ def test_an_inflated_ellipse_holds_the_points_near_the_ellipse(a, b, yaw, margin
     normal = np.array([math.cos(angle) / a, math.sin(angle) / b])
     rotate = np.array([[c, -s], [s, c]])
     point, normal = rotate @ local + (1.0, -2.0), rotate @ (normal / np.linalg.norm(normal))
-    guaranteed = margin if a == b else (math.sqrt(2) - 1) * margin
+    guaranteed = margin * min(a, b) / max(a, b)  # Ellipse.inflated: (b / a) margin in any direction
     assert grown.depth(point + fraction * guaranteed * normal) > -1e-9
     if abs(math.cos(angle)) < 1e-9 or abs(math.sin(angle)) < 1e-9:  # along an axis: the whole margin
         assert grown.depth(point + fraction * margin * normal) > -1e-9

@@ -155,8 +155,9 @@ class Ellipse(_Moving):
 
     def inflated(self, margin: float) -> Ellipse:
         """The ellipse with both semi-axes longer by `margin` (plane units, >= 0). A circle grows by exactly
-        `margin`; an ellipse holds every point within `margin` of it along its axes and, in any
-        direction, within (sqrt(2) - 1) `margin` at least (the worst case: a needle-thin ellipse)."""
+        `margin`; an ellipse holds every point within `margin` of it along its axes and, in any direction,
+        within (b / a) `margin` at least (b <= a its semi-axes; tight: 0.25 margin at a / b = 60, near the tips
+        of a thin ellipse). The whole margin in every direction would take b' = sqrt(b^2 + 2 a margin + margin^2)."""
         return self if margin == 0 else dataclasses.replace(
             self, semi_axes=(self.semi_axes[0] + margin, self.semi_axes[1] + margin))
 

@@ -12,8 +12,8 @@ The bound (docs/design.md, 'Mismatch margin'): if the plant's one-step deviation
 stays within the window's largest e, a planned x(1) that clears the obstacle inflated by that much
 in every direction puts the real x(1) outside the obstacle. Inflation is exact for circles and
 polygons (edges moved out); for an ellipse the semi-axes grow by the margin, which keeps at least
-0.41 of it in every direction (needle-thin), so gain 1 / 0.41 = 2.5 covers any ellipse and gain 1 a
-round one. Between the samples the deviation grows from 0 to about e, so the same margin covers the
+b / a of it in every direction (semi-axes b <= a; core/problem/shapes.py Ellipse.inflated), so gain a / b
+covers an ellipse and gain 1 a round one. Between the samples the deviation grows from 0 to about e, so the same margin covers the
 sub-step states as far as the deviation grows monotonically; the keep-in sets (`keep_in`) are
 constraints of the configured problem and are not tightened.
 
