@@ -13,9 +13,9 @@ stays within the window's largest e, a planned x(1) that clears the obstacle inf
 in every direction puts the real x(1) outside the obstacle. Inflation is exact for circles and
 polygons (edges moved out); for an ellipse the semi-axes grow by the margin, which keeps at least
 b / a of it in every direction (semi-axes b <= a; core/problem/shapes.py Ellipse.inflated), so gain a / b
-covers an ellipse and gain 1 a round one. Between the samples the deviation grows from 0 to about e, so the same margin covers the
-sub-step states as far as the deviation grows monotonically; the keep-in sets (`keep_in`) are
-constraints of the configured problem and are not tightened.
+covers an ellipse and gain 1 a round one. Between the samples the deviation grows from 0 to about e, so the
+same margin covers the sub-step states as far as the deviation grows monotonically; the keep-in sets
+(`keep_in`) are constraints of the configured problem and are not tightened.
 
 The margin grows at once to MARGIN_HEADROOM times its target and shrinks only when the target falls
 below half of it (a target below the penetration tolerance 1e-3 is 0: a model that predicts the plant
