@@ -9,6 +9,7 @@ the solver layer.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import casadi as ca
@@ -107,6 +108,14 @@ class ProblemParts:
     u_prev: ca.SX  # [m] the command in force, with input_rate_max (else empty)
     rate_on: ca.SX  # [1] 1 when there is one (else empty)
     output_weights: np.ndarray | None = None  # [p] W of V_o (settings.output_weights); None: the paper's |.|^2
+    rate_limited: tuple[int, ...] = ()  # the inputs input_rate_max limits (a finite rate)
+    rate_step: tuple[float, ...] = ()  # their largest change per sample, rate * sample_time
+
+    def rate_rows(self, u: ca.SX, before: ca.SX, first: bool) -> tuple[ca.SX, list[float], list[float]]:
+        """The rows |u - before| <= rate Ts of the limited inputs (`first`: before is the command in force, the rows
+        on only where there is one, rate_on) with their lower and upper bounds; empty without limits."""
+        change = self.rate_on * (u - before) if first else u - before
+        return change[list(self.rate_limited)], [-step for step in self.rate_step], list(self.rate_step)
 
     def offset_cost(self, y_a: ca.SX) -> ca.SX:
         """V_o = kappa |y_a - y_t|_W^2 (the paper's kappa |y_a - y_t|^2, to the last operation, without weights)."""
@@ -174,6 +183,7 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     # with input_rate_max: the command in force u_prev [m] and whether there is one (the slots stay last)
     u_prev = ca.SX.sym("u_prev", m if s.input_rate_max else 0)
     rate_on = ca.SX.sym("rate_on", 1 if s.input_rate_max else 0)
+    rate_limited = tuple(i for i, rate in enumerate(s.input_rate_max) if math.isfinite(rate))
     par = ca.vertcat(x0, y_t, kappa, mu, q, r, keep_active, u_prev, rate_on, slot_par)
 
     def points(x, u):
@@ -200,7 +210,8 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
     return ProblemParts(par, x0, y_t, kappa, mu, q, r, keep_active, slot_par, avoidance, chord, hard_g, hard_uses_u,
                         len(hard), len(keep_in), len(keep_in) + slots.max_ellipses + slots.max_polygons, slots,
                         output_frame_available, s.use_closed_form_steady_state and mdl.steady_state is not None,
-                        u_prev, rate_on, np.array(s.output_weights, float) if s.output_weights else None)
+                        u_prev, rate_on, np.array(s.output_weights, float) if s.output_weights else None,
+                        rate_limited, tuple(float(s.input_rate_max[i]) * s.sample_time for i in rate_limited))
 
 
 def depth_function(parts: ProblemParts, model: Model, keep_in_margin: float | None = None) -> ca.Function:

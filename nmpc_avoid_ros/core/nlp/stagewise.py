@@ -142,8 +142,6 @@ class StagewiseNlp(NlpBase):
         # input_rate_max couples u(k) to u(k-1): each stage carries the input before its own as a state v(k)
         r = m if s.input_rate_max else 0
         V = [ca.SX.sym(f"v{k}", r) for k in range(N + 1)]
-        limited = [i for i, rate in enumerate(s.input_rate_max) if np.isfinite(rate)]
-        rate_step = [float(s.input_rate_max[i]) * s.sample_time for i in limited]
         U = [ca.SX.sym(f"u{k}", m) for k in range(N)]
         S = [ca.SX.sym(f"s{k}", nd) for k in range(N)]
         s_a = ca.SX.sym("s_a", nd)
@@ -207,11 +205,11 @@ class StagewiseNlp(NlpBase):
                 cost += v_offset + counted * parts.mu * ca.dot(s_a, s_a) + regularise * ca.dot(s_a, s_a)
                 slack_vars.append(s_a)
                 slack_depths.append(depth_a)
-            if limited:  # |u(k) - u(k-1)| <= rate Ts; u(-1) the command in force, where there is one
-                change = (U[k] - V[k]) if k else parts.rate_on * (U[0] - V[0])
-                g.append(change[limited])
-                lbg += [-step for step in rate_step]
-                ubg += rate_step
+            if parts.rate_limited:  # |u(k) - u(k-1)| <= rate Ts; u(-1) the command in force, where there is one
+                rows, lo, hi = parts.rate_rows(U[k], V[k], first=k == 0)
+                g.append(rows)
+                lbg += lo
+                ubg += hi
             depth = parts.avoidance(X[k], U[k], k * s.sample_time)
             between = between_samples(parts, X[k], points, U[k], k * s.sample_time, s.sample_time)
             for rows in (depth, *between):  # one slack per region bounds g at x(k) and on the way on

@@ -247,12 +247,10 @@ class TrackingNlp(NlpBase):
         depth.append(avoidance(states[N], u_a, N * ts))
         between.append([])
         if s.input_rate_max:  # |u(j) - u(j-1)| <= rate Ts, u(-1) the command in force (rows where rate is finite)
-            limited = [i for i, rate in enumerate(s.input_rate_max) if np.isfinite(rate)]
-            step = np.array(s.input_rate_max)[limited] * ts
             for j in range(N):
-                change = U[:, j] - U[:, j - 1] if j else parts.rate_on * (U[:, 0] - parts.u_prev)
-                g.append(change[limited])
-                lbg, ubg = lbg + list(-step), ubg + list(step)
+                rows, lo, hi = parts.rate_rows(U[:, j], U[:, j - 1] if j else parts.u_prev, first=j == 0)
+                g.append(rows)
+                lbg, ubg = lbg + lo, ubg + hi
         # F = max(0, g)^2 is only C1, which costs IPOPT many iterations near region boundaries.
         # The smooth equivalent: slacks s >= 0, s >= g, cost s^2 (at the optimum s = max(0, g)).
         # Between samples a stage's slack also bounds g at its sub-step states: s = the worst of them.

@@ -185,10 +185,12 @@ def score_world(spec: dict[str, Any], family: Any, tools: Any) -> dict[str, Any]
     dense, times = np.vstack([x0, *plant.path]), np.array([0.0, *plant.times])
     body = settings.body_radius
     target = np.asarray(spec["target"], float)
-    distance = np.linalg.norm(run.x[:, :2] - target[:2], axis=1)
+    # the planar robots' outputs are their first states (position, and a goal pose's heading, wrapped by the model)
+    error = np.array([model.output_error(x[:len(target)], target) for x in run.x])
+    distance = np.linalg.norm(error[:, :2], axis=1)
     within = distance < GOAL_TOLERANCE
     if len(target) == 3:  # a goal pose: the heading too, the short way round
-        within &= np.abs(np.angle(np.exp(1j * (run.x[:, 2] - target[2])))) < HEADING_TOLERANCE
+        within &= np.abs(error[:, 2]) < HEADING_TOLERANCE
     reached_at = next((k for k in range(len(within)) if within[k:].all()), None)
     clearance = body_clearance(spec, world, dense[:, :2], times, body)
     return {"id": spec["id"], "family": spec["family"], "index": spec["index"],
