@@ -165,7 +165,7 @@ def test_reachable_set_and_passages():
     assert not vdp_passage(np.array([1.0, 0.0]), np.array([5.0]), [Ellipse((3.0, 0.5), (0.3, 1.0))])
     assert vdp_passage(np.array([1.0, 0.0]), np.array([5.0]), [Ellipse((3.0, -0.5), (0.3, 0.45))])
     # a gap only at 1.996 < x2 <= 2 above an ellipse: open to the paper's constraints, closed to the live config,
-    # which plans |x2| <= 1.995 (keep-in rows) and inflates the ellipse by region_margin
+    # which plans |x2| <= 1.99 (keep-in rows) and inflates the ellipse by region_margin
     gap = Ellipse((0.6, 0.998), (0.1, 0.998))
     assert vdp_passage(np.array([0.0, 0.0]), np.array([2.0]), [gap])
     live = load_settings(default_config_path().parent / "van_der_pol_live.yaml")

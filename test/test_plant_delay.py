@@ -56,3 +56,22 @@ def test_a_delay_lockstep_cannot_integrate_is_refused_in_one_line(ros_graph, bad
                           str(CONFIG), *args], env=env, capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert "input_delay" in res.stderr.strip().splitlines()[-1], res.stderr
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.012, 0.3])
+def test_a_real_time_command_acts_from_its_dds_reception_not_from_its_callback(lag):
+    """A busy executor runs a command's callback after the middleware received it: the plant acts from the
+    reception stamp (a real actuator does not wait for the interpreter), a stamp it cannot trust from now."""
+    import time
+
+    from nmpc_avoid_ros.nodes.plant import RECEPTION_STAMP_SKEW, arrival_instant
+
+    before = time.monotonic()
+    at = arrival_instant({"received_timestamp": time.time_ns() - round(lag * 1e9)})
+    after = time.monotonic()
+    assert before - lag - 2e-3 <= at <= after - lag + 2e-3
+    for untrusted in ({}, None, {"received_timestamp": 0},
+                      {"received_timestamp": time.time_ns() - round((RECEPTION_STAMP_SKEW + 1) * 1e9)},
+                      {"received_timestamp": time.time_ns() + 10**9}):
+        before = time.monotonic()
+        assert before <= arrival_instant(untrusted) <= time.monotonic()

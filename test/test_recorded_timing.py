@@ -86,10 +86,11 @@ def _write_bag(path, states, commands, samples, plant_params=None, controller=No
             bag.write_message("/diagnostics", DiagnosticArray(status=[status]), ns(t))
 
 
-def _open_loop_bag(path, offsets, late_steps=False, cover_at=None, plant_params=None):
+def _open_loop_bag(path, offsets, late_steps=False, cover_at=None, plant_params=None, predicted=None):
     """A real-time bag of fixed commands: sample k solves on the state of tick HELD + k PER_SAMPLE and its command
     arrives offsets[k] s after that tick (late_steps: the earlier plant, whole periods); `cover_at` (sample,
-    s): a late cover before that sample's command. Returns the true arrival offsets."""
+    s): a late cover before that sample's command; `predicted` (s per sample): the delay its diagnostics say the
+    controller predicted. Returns the true arrival offsets."""
     plant = CausalPlant([-5.0, 0.0])
     commands, samples = [], []
     rng = np.random.default_rng(3)
@@ -105,7 +106,8 @@ def _open_loop_bag(path, offsets, late_steps=False, cover_at=None, plant_params=
         commands.append((tick * PERIOD + d + (-1e-3 if late_steps else 2e-5), [us[k]]))  # the recorder's log time
         samples.append((tick * PERIOD + d + 1e-4, {
             "state": str(x.tolist()), "command": str([float(us[k])]), "y_a": "[0.0]", "status": "ok",
-            "solve_time_ms": "1.0", "state_time": repr(1.0 + tick * PERIOD + 1e-3)}))
+            "solve_time_ms": "1.0", "state_time": repr(1.0 + tick * PERIOD + 1e-3),
+            **({} if predicted is None else {"predicted_delay_ms": f"{predicted[k] * 1e3:.2f}"})}))
     plant.run_to(HELD + len(offsets) * PER_SAMPLE)
     _write_bag(path, plant.states, commands, samples, plant_params)
     return plant
@@ -146,6 +148,23 @@ def test_each_commands_arrival_is_recovered_from_the_states_of_the_causal_plant(
                                          "command acting 0.4 to 103.8 ms")
     assert "1 other recorded command(s) (late cover, deactivation) replayed as recorded" in choice.timing_note
     assert choice.timing_note.endswith(", 5 of 7 commands a plant step or more late")
+
+
+def test_the_commands_timing_beyond_the_controllers_prediction_is_measured(tmp_path):
+    # a compensated controller predicted each command's effect; the plant got some later, one earlier
+    offsets = [0.0213, 0.0617, 0.1038, 0.0800, 0.0404, 0.0150, 0.1472]
+    jitter = np.array([0.0021, 0.0140, -0.0005, 0.0033, 0.0, 0.0012])  # the last command: after the final state
+    _open_loop_bag(tmp_path / "jitter.mcap", offsets, predicted=[*(np.array(offsets[:-1]) - jitter), 0.0])
+    _, choice = _recover(tmp_path / "jitter.mcap")
+    assert choice.timing is not None, choice.timing_note
+    beyond = choice.timing.beyond_prediction()
+    assert beyond == pytest.approx(jitter, abs=1e-5)  # predicted_delay_ms is printed to 10 us
+    assert choice.timing_note.endswith("against the controller's prediction: +1.65 ms at the median, +8.65 at p90, "
+                                       "+14 at most"), choice.timing_note
+    # without the controller's prediction in the bag, nothing is claimed
+    _open_loop_bag(tmp_path / "plain.mcap", offsets)
+    _, plain = _recover(tmp_path / "plain.mcap")
+    assert plain.timing.beyond_prediction().size == 0 and "prediction" not in plain.timing_note
 
 
 def test_the_earlier_plants_whole_late_steps_are_the_special_case_of_arrivals_on_a_tick(tmp_path):

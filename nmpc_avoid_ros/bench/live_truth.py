@@ -7,7 +7,11 @@ Each run starts recorder, plant and controller with config/van_der_pol_live.yaml
 centred (2, -0.5) with semi-axes 0.4 x 0.2, target -3, delete it, mu 0. It reads the bag's `/state` (the
 plant's own publications) for max |x1 x2|, max |x2| and the ellipse's clearance, and `analyze`'s metrics of
 the same bag beside them. Half of the runs plan from the measured state (`latency_compensation: false`),
-interleaved with the others, so both see the same machine. Results: BENCHMARKS.md, 'The truth of the live loop'.
+interleaved with the others, so both see the same machine. Each run also says when the commands took effect
+on the plant against the instant the controller planned from (the arrivals fitted from the recorded states,
+evaluation/recorded_timing.py): the timing jitter latency compensation cannot see. `--load N` runs N busy
+loops beside the nodes (a loaded machine). Results: BENCHMARKS.md, 'The truth of the live loop' and
+'Command timing jitter'.
 """
 
 from __future__ import annotations
@@ -23,8 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from ..bag.mcap_io import load_bag
-from ..core.config.settings import default_config_path
+from ..bag.analysis import load_run
+from ..bag.mcap_io import Bag, load_bag
+from ..bag.node_parameters import recorded_setup
+from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
+from ..evaluation.counterfactual import recorded_plant
 from ..tools.processes import NodeProcess, isolated_env
 
 LIVE = default_config_path().parent / "van_der_pol_live.yaml"
@@ -38,6 +45,25 @@ def send(env: dict[str, str], args: list[str]) -> tuple[int, str]:
     proc = subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "send", *args, "--timeout", "180"], env=env,
                           capture_output=True, text=True, timeout=240, start_new_session=True)
     return proc.returncode, proc.stderr.strip()
+
+
+def command_timing(bag: Bag, bag_path: Path) -> dict[str, Any]:
+    """ms each sample's command took effect on the plant after the instant its controller planned from
+    (median, p90, max over the samples; positive: later), or why the bag does not tell it."""
+    settings = ControllerSettings.from_params(load_params_file(LIVE).section("controller"))
+    run = load_run(bag_path, settings=settings, bag=bag)
+    choice = recorded_plant(bag, recorded_setup(bag, "/controller"), settings, None, run)
+    beyond = choice.timing.beyond_prediction() * 1e3 if choice.timing is not None else np.zeros(0)
+    if not beyond.size:
+        return {"note": choice.timing_note}
+    return {"median": float(np.median(beyond)), "p90": float(np.percentile(beyond, 90)), "max": float(beyond.max()),
+            "samples": int(beyond.size)}
+
+
+def busy_loops(count: int) -> list[subprocess.Popen]:
+    """`count` processes spinning a core each, in their own process groups (stopped by PID)."""
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True)
+            for _ in range(count)]
 
 
 def one_run(compensate: bool, domain: int, folder: Path) -> dict[str, Any]:
@@ -70,7 +96,7 @@ def one_run(compensate: bool, domain: int, folder: Path) -> dict[str, Any]:
     return {"latency_compensation": compensate, "states": len(states),
             "max_abs_x1x2": float(np.max(np.abs(states[:, 0] * states[:, 1]))),
             "max_abs_x2": float(np.max(np.abs(states[:, 1]))), "max_ellipse_g": float(np.max(ellipse_g)),
-            "refused_sends": refused, "analyze": analyzed}
+            "refused_sends": refused, "command_timing_ms": command_timing(bag, bag_path), "analyze": analyzed}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,17 +106,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--domain", type=int, default=91, help="first ROS_DOMAIN_ID (one per run)")
     parser.add_argument("--keep", type=Path, help="keep each run's bag, logs and analysis in this folder")
     parser.add_argument("--only", choices=("on", "off"), help="only the runs with (on) or without compensation")
+    parser.add_argument("--load", type=int, default=0, help="busy loops run beside the nodes (a loaded machine)")
     opts = parser.parse_args(argv)
     records = []
+    load = busy_loops(opts.load)
     variants = {"on": (True,), "off": (False,), None: (True, False)}[opts.only]
-    with tempfile.TemporaryDirectory() as tmp:
-        for i in range(opts.runs):
-            for compensate in variants:
-                folder = (opts.keep or Path(tmp)) / f"run{i}_{'on' if compensate else 'off'}"
-                folder.mkdir(parents=True, exist_ok=True)
-                record = one_run(compensate, opts.domain + len(records) % 10, folder)
-                records.append(record)
-                print(json.dumps({k: v for k, v in record.items() if k != "analyze"}), flush=True)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            for i in range(opts.runs):
+                for compensate in variants:
+                    folder = (opts.keep or Path(tmp)) / f"run{i}_{'on' if compensate else 'off'}"
+                    folder.mkdir(parents=True, exist_ok=True)
+                    record = one_run(compensate, opts.domain + len(records) % 10, folder)
+                    records.append({**record, "load": opts.load})
+                    print(json.dumps({k: v for k, v in record.items() if k != "analyze"}), flush=True)
+    finally:
+        for proc in load:
+            proc.kill()
+            proc.wait()
     opts.json.parent.mkdir(parents=True, exist_ok=True)
     opts.json.write_text(json.dumps({"command": " ".join(["python -m nmpc_avoid_ros.bench.live_truth", *(argv or
                                                                                                         sys.argv[1:])]),

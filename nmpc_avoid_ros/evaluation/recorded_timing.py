@@ -65,6 +65,17 @@ class RecordedTiming:
     offsets: list[float | None]
     arrivals: list[Arrival] = field(default_factory=list)
     held: bool = True
+    #: s per sample: the delay its controller predicted from the state to the command's effect (diagnostics
+    #: `predicted_delay_ms`; None: not recorded)
+    predicted: np.ndarray | None = None
+
+    def beyond_prediction(self) -> np.ndarray:
+        """s each sample's command took effect after the instant its controller planned from (the fitted arrival
+        minus `predicted`; > 0: later). What latency compensation cannot see: the commands' timing jitter.
+        Empty without `predicted`."""
+        if self.predicted is None:
+            return np.zeros(0)
+        return np.array([d - p for d, p in zip(self.offsets, self.predicted, strict=False) if d is not None])
 
     @property
     def steps(self) -> list[int]:
@@ -93,8 +104,11 @@ class RecordedTiming:
         others = sum(1 for a in self.arrivals if a.sample is None)
         extra = (f", {others} other recorded command(s) (late cover, deactivation) replayed as recorded"
                  if others else "")
+        beyond = self.beyond_prediction() * 1e3
+        jitter = (f"; against the controller's prediction: {np.median(beyond):+.3g} ms at the median, "
+                  f"{np.percentile(beyond, 90):+.3g} at p90, {beyond.max():+.3g} at most" if beyond.size else "")
         return (f"the recorded timing: plant steps of {self.period * 1e3:g} ms, {min(between)} to {max(between)} per "
-                f"sample, {spread}{extra}, {late} of {len(self.offsets)} commands a plant step or more late")
+                f"sample, {spread}{extra}, {late} of {len(self.offsets)} commands a plant step or more late{jitter}")
 
 
 def _state_messages(bag: Bag) -> tuple[list[np.ndarray], list[int]]:
@@ -258,7 +272,8 @@ def recorded_timing(bag: Bag, run: RecordedRun, plant: Plant, period: float, sam
     for a in arrivals:
         if a.sample is not None:
             offsets[a.sample] = a.at - (found[a.sample] - found[0]) * period
-    timing = RecordedTiming(period, [i - found[0] for i in found] + [last - found[0]], offsets, arrivals, held)
+    timing = RecordedTiming(period, [i - found[0] for i in found] + [last - found[0]], offsets, arrivals, held,
+                            run.delays)
     error = reproduction_error(timing, plant, run, sample_time)
     if not error <= TIMING_TOLERANCE:
         return None, (f"the recorded commands with the plant's {period * 1e3:g} ms steps reproduce the recorded "

@@ -3,7 +3,8 @@
     ros2 run nmpc_avoid_ros plant --ros-args --params-file config/van_der_pol.yaml
 
 Real time: a timer at `publish_rate` Hz integrates the continuous dynamics over each period and publishes
-the state. A command acts from the moment it arrives, as on a real plant: the period it arrives in is
+the state. A command acts from the moment it arrives (its DDS reception, not the later moment the executor
+runs its callback), as on a real plant: the period it arrives in is
 integrated under the previous command up to its arrival and under the new one from there (each period
 lasts exactly 1 / publish_rate of simulated time, so a bag's states and commands replay exactly:
 evaluation/recorded_timing.py recovers each command's arrival within its period from the states).
@@ -112,6 +113,21 @@ PLANT_SPECS = [
 ]
 
 
+#: s: a DDS reception stamp further back than this (or in the future) is not trusted: the callback's own time
+RECEPTION_STAMP_SKEW = 0.5
+
+
+def arrival_instant(info: dict | None) -> float:
+    """Monotonic s at which a command reached this process: its DDS reception stamp (`received_timestamp`,
+    taken by the middleware's receive thread), not the moment Python's executor ran the callback. A real
+    actuator does not wait for an interpreter: on a loaded 2-core machine the executor ran commands up to
+    17 ms after their reception, and the plant acting from then broke the box |x2| <= 2 by 0.02 where the
+    controller had predicted the command's arrival to the millisecond (test/test_send_dds.py)."""
+    now = time.monotonic()
+    lag = (time.time_ns() - int((info or {}).get("received_timestamp", 0))) * 1e-9
+    return now - lag if 0.0 <= lag <= RECEPTION_STAMP_SKEW else now
+
+
 def tf_message_type() -> type | None:
     """tf2_msgs/TFMessage, or None where tf2_msgs is not importable: the PyPI wheels do not carry it, a ROS
     installation does. Looked up by name when a node starts: the node runs without it."""
@@ -178,10 +194,10 @@ class PlantNode(Node):
             self.robot_map = check_robot_model(self.model)
             self.pub_state = self.pub_odom = self.create_publisher(Odometry, "odom", STREAM_QOS)
             twist_type = TwistStamped if values["cmd_vel_stamped"] else Twist
-            self.create_subscription(twist_type, "cmd_vel", self.on_command, LATEST_QOS)
+            self.create_subscription(twist_type, "cmd_vel", self.on_command_received, LATEST_QOS)
         else:
             self.pub_state = self.create_publisher(Float64MultiArray, "state", STREAM_QOS)
-            self.create_subscription(Float64MultiArray, "command", self.on_command, LATEST_QOS)
+            self.create_subscription(Float64MultiArray, "command", self.on_command_received, LATEST_QOS)
             if self.heading is not None:  # the pose of a planar robot, for the views (the controller reads `state`)
                 self.pub_odom = self.create_publisher(Odometry, "odom", STREAM_QOS)
         if self.heading is not None and values["publish_tf"]:
@@ -260,7 +276,11 @@ class PlantNode(Node):
     def publish_clock(self) -> None:
         self.pub_clock.publish(Clock(clock=Time(nanoseconds=self.sim_time_ns).to_msg()))
 
-    def on_command(self, msg: Float64MultiArray | Twist | TwistStamped) -> None:
+    def on_command_received(self, msg: Float64MultiArray | Twist | TwistStamped, info: dict) -> None:
+        """The subscription's callback: two parameters, so that rclpy hands over the message info."""
+        self.on_command(msg, info)
+
+    def on_command(self, msg: Float64MultiArray | Twist | TwistStamped, info: dict | None = None) -> None:
         try:
             u = self.robot_map.inputs(self.x, twist_to_command(msg)) if self.robot else \
                 array_to_vector(msg, self.model.m, "command")
@@ -269,10 +289,11 @@ class PlantNode(Node):
             self.get_logger().warning(f"rejected command: {exc}", throttle_duration_sec=2.0)
             return
         if not self.lockstep:
+            arrived = arrival_instant(info)
             if self.input_delay > 0:
-                self.pending.append((time.monotonic() + self.input_delay, u))
+                self.pending.append((arrived + self.input_delay, u))
             else:
-                self.act(u, time.monotonic())
+                self.act(u, arrived)
             return
         previous, self.u, self.holding = self.u, u, False
         if self.max_steps and self.steps >= self.max_steps:

@@ -145,7 +145,7 @@ def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]
     Moving x1 right needs x2 > 0 (left: x2 < 0), with |x2| <= 2 and |x1 x2| <= 2. The corridor is
     open when every x1 slice (step 0.01) between the two has such an x2 outside all ellipses
     (continuous-time reasoning; an Euler step could jump a thin slice) and, with `settings`, inside its
-    keep-in expressions as planned (g + keep_in_margin <= 0: the live config's |x2| <= 1.995 rows too).
+    keep-in expressions as planned (g + keep_in_margin <= 0: the live config's |x2| <= 1.99 rows too).
     """
     a, b = float(x_end[0]), float(y_goal[0])
     if abs(b - a) < 1e-9:
