@@ -347,3 +347,26 @@ def test_the_bicycle_world_family_draws_the_worlds_rooms_with_a_goal_heading_and
     assert record["id"] == "bicycle_world-0000" and len(record["spec"]["target"]) == 3
     assert not record["reached"]  # 15 samples (3 s) do not reach a goal at least 3 m away and turned
     assert json.loads((out / "summary.json").read_text())["summary"]["bicycle_world"]["scenarios"] == 1
+
+
+def test_a_pose_goal_is_drawn_at_its_position_with_its_heading(tmp_path, monkeypatch):
+    """A car's goal (x, y, heading): the example plot marks (x, y), not (0, y) as it once did when the three
+    numbers went to matplotlib as coordinates, and shows the heading as an arrow."""
+    import math
+
+    from nmpc_avoid_ros.evaluation.campaign import plots
+
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: figures.append(fig) or path)
+    goal = [3.0, -2.0, math.pi / 2]
+    record = {"family": "bicycle", "id": "bicycle-0000", "converged": True, "n_ellipses": 2,
+              "spec": {"target": goal, "ellipses": []}, "y_star": [3.0, -2.0, math.pi / 2],
+              "y_admissible": [3.0, -2.0, math.pi / 2], "trace": {"x": [[-4.0, 1.0, 0.0, 0.0], [3.0, -2.0, 1.5, 0.0]]},
+              "stop_short": False, "stop_short_cause": "", "reachable": True, "at_rest": True, "fallbacks": 0}
+    assert plots.examples_plot([record], "bicycle", tmp_path / "examples.png") is not None
+    ax = figures[0].axes[0]
+    marked = {line.get_label(): (list(line.get_xdata()), list(line.get_ydata())) for line in ax.get_lines()}
+    assert marked["target y_t"] == ([3.0], [-2.0]) and marked["best reachable y*"] == ([3.0], [-2.0])
+    assert [line.get_label() for line in ax.get_lines()].count("target y_t") == 1
+    arrow = next(a for a in ax.texts if a.arrow_patch is not None)
+    assert arrow.xy == pytest.approx((3.0, -0.8)) and arrow.xyann == pytest.approx((3.0, -2.0))

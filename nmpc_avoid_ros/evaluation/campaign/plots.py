@@ -179,7 +179,9 @@ def examples_plot(records: Sequence[Mapping[str, Any]], fam: str, path: Path,
         else:
             xlim = ylim = (-11.5, 11.5)
             ax.add_patch(plt.Rectangle((-10, -10), 20, 20, fill=False, ec="k", lw=0.8))
-            target_pt, best_pt, adm_pt = rec["spec"]["target"], rec["y_star"], rec["y_admissible"]
+            # a pose goal (x, y, heading) is drawn at its position, the heading as an arrow below
+            target_pt, best_pt, adm_pt = (tuple(np.asarray(v, float)[:2])
+                                          for v in (rec["spec"]["target"], rec["y_star"], rec["y_admissible"]))
             ax.set_aspect("equal")
         regions = _regions(rec)
         for region in regions:
@@ -190,6 +192,10 @@ def examples_plot(records: Sequence[Mapping[str, Any]], fam: str, path: Path,
         ax.plot(x[:, 0], x[:, 1], "-o", ms=2, lw=1.3, color="tab:blue", label="closed loop")
         ax.plot(x[0, 0], x[0, 1], "ks", ms=6, label="start")
         ax.plot(*target_pt, "kx", ms=9, mew=2, label="target y_t")
+        if not vdp and len(rec["spec"]["target"]) >= 3:
+            heading = float(rec["spec"]["target"][2])
+            ax.annotate("", xy=(target_pt[0] + 1.2 * math.cos(heading), target_pt[1] + 1.2 * math.sin(heading)),
+                        xytext=target_pt, arrowprops={"arrowstyle": "->", "color": "k", "lw": 1.2})
         ax.plot(*best_pt, "o", mfc="none", mec="tab:green", ms=10, mew=1.5, label="best reachable y*")
         if np.all(np.isfinite(adm_pt)) and not np.allclose(adm_pt, best_pt):
             ax.plot(*adm_pt, "D", mfc="none", mec="tab:purple", ms=8, label="best admissible y~")
