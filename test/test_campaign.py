@@ -370,3 +370,20 @@ def test_a_pose_goal_is_drawn_at_its_position_with_its_heading(tmp_path, monkeyp
     assert [line.get_label() for line in ax.get_lines()].count("target y_t") == 1
     arrow = next(a for a in ax.texts if a.arrow_patch is not None)
     assert arrow.xy == pytest.approx((3.0, -0.8)) and arrow.xyann == pytest.approx((3.0, -2.0))
+
+
+def test_a_robot_stopped_on_a_regions_boundary_is_in_the_free_component_beside_it():
+    """A robot that stopped skimming an (inflated) ellipse rounds into an occupied cell: it is still in the free
+    plane's component next to it (campaign bicycle-0028 was 'no passage' with the way round open); a point deep
+    inside an ellipse is in none."""
+    from nmpc_avoid_ros.evaluation.campaign.reachability import planar_passage
+
+    ellipse = Ellipse((0.0, 0.0), (1.0, 0.5))
+    goal = np.array([5.0, 5.0])
+    for angle in np.linspace(0.0, 2 * np.pi, 13):
+        on_boundary = np.array([np.cos(angle), 0.5 * np.sin(angle)])
+        assert planar_passage(on_boundary, goal, [ellipse]), angle
+    assert not planar_passage(np.array([0.0, 0.0]), goal, [ellipse])
+    # a ring around the goal still closes the way
+    ring = [Ellipse((5.0 + 1.5 * np.cos(a), 5.0 + 1.5 * np.sin(a)), (0.6, 0.6)) for a in np.linspace(0, 2 * np.pi, 13)]
+    assert not planar_passage(np.array([0.0, 1.0]), goal, ring)

@@ -165,9 +165,16 @@ def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]
     return bool(np.all(free.reshape(x1.size, frac.size).any(axis=1)))
 
 
+#: cells (of planar_passage's grid) around a point searched for the free component it belongs to
+BOUNDARY_CELLS = 2
+
+
 def planar_passage(y_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region], half_width: float = 10.0,
                    cell: float = 0.05) -> bool:
-    """Are y_end and y_goal in one connected component of the free plane [-w, w]^2 minus ellipses?"""
+    """Are y_end and y_goal in one connected component of the free plane [-w, w]^2 minus ellipses?
+
+    A point in an occupied cell within `BOUNDARY_CELLS` of a free one belongs to the nearest free cell's
+    component: a robot that stopped skimming a region, on its (inflated) boundary, rounds into it."""
     from scipy.ndimage import label
 
     axis = np.arange(-half_width, half_width + cell / 2, cell)
@@ -177,9 +184,15 @@ def planar_passage(y_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Regi
         free &= (region_depth(region, np.vstack([PX.ravel(), PY.ravel()])) <= 0).reshape(PX.shape)
     labels, _ = label(free)
 
-    def cell_of(pt: np.ndarray) -> tuple[int, int]:
+    def component(pt: np.ndarray) -> int:
         i, j = (int(np.clip(round((c + half_width) / cell), 0, axis.size - 1)) for c in pt[:2])
-        return i, j
+        lo_i, lo_j = max(i - BOUNDARY_CELLS, 0), max(j - BOUNDARY_CELLS, 0)
+        near = labels[lo_i:i + BOUNDARY_CELLS + 1, lo_j:j + BOUNDARY_CELLS + 1]
+        ii, jj = np.nonzero(near)
+        if not ii.size:
+            return 0
+        k = int(np.argmin((ii + lo_i - i) ** 2 + (jj + lo_j - j) ** 2))
+        return int(near[ii[k], jj[k]])
 
-    a, b = labels[cell_of(y_end)], labels[cell_of(y_goal)]
+    a, b = component(y_end), component(y_goal)
     return bool(a and b and a == b)
