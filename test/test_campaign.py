@@ -387,3 +387,19 @@ def test_a_robot_stopped_on_a_regions_boundary_is_in_the_free_component_beside_i
     # a ring around the goal still closes the way
     ring = [Ellipse((5.0 + 1.5 * np.cos(a), 5.0 + 1.5 * np.sin(a)), (0.6, 0.6)) for a in np.linspace(0, 2 * np.pi, 13)]
     assert not planar_passage(np.array([0.0, 1.0]), goal, ring)
+
+
+def test_starts_the_clock_cut_are_counted_so_a_load_dependent_outcome_shows(campaign, tmp_path):
+    """With budgets that never bind nothing is cut; with a 2 ms budget the deadline stops solves and skips starts,
+    and the record and the summary count them (a field timing may change: running.comparable strips it)."""
+    from nmpc_avoid_ros.evaluation.campaign.running import comparable
+
+    records = read_jsonl(campaign / JSONL_NAME).values()
+    assert all(r["starts_cut_by_time"] == 0 for r in records)
+    args = ["--out", str(tmp_path), "--vdp", "1", "--robot", "0", "--seed", SEED, "--vdp-steps", "10",
+            "--max-solve-time", "0.002", "--no-progress", "--no-plots", "--jobs", "1"]
+    assert main(args) == 0
+    (record,) = read_jsonl(tmp_path / JSONL_NAME).values()
+    assert record["starts_cut_by_time"] > 0 and "starts_cut_by_time" not in comparable(record)
+    summary = json.loads((tmp_path / "summary.json").read_text())["summary"]["vdp"]
+    assert summary["starts_cut_by_time"] == record["starts_cut_by_time"] and summary["runs_with_starts_cut_by_time"] == 1

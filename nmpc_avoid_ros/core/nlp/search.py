@@ -32,6 +32,9 @@ import numpy as np
 from .tiers import TieredNlp
 from .tracking import BUDGET_EXHAUSTED, SOLVED, NlpBase
 
+#: solver statuses of a solve the clock cut (not its iteration count)
+TIME_CUT = BUDGET_EXHAUSTED - {"Maximum_Iterations_Exceeded"}
+
 #: predicted violations up to this count as none (region g and state units): a plan's own penalty optimum
 #: predicts ~1e-4 of penetration, which must not lose to a recovery solve over rounding (core/sample/fallback.py)
 VIOLATION_TOLERANCE = 1e-3
@@ -152,6 +155,13 @@ class SearchReport:
     def guesses_tried(self) -> bool:
         """Escape or passage guesses were solved at this sample."""
         return self.phase in ("escape", "passage_try") and any(t.phase == self.phase for t in self.tried)
+
+    @property
+    def cut_by_time(self) -> int:
+        """Starts the sample's clock cut: solves stopped at its deadline, and starts not tried because its budget
+        was spent. They depend on the machine's speed and load: a run with them may end otherwise on another
+        machine (a campaign scene that converges alone fails beside a second job)."""
+        return sum(t.outcome is Outcome.NOT_TRIED or t.solver_status in TIME_CUT for t in self.tried)
 
     @property
     def guess_taken(self) -> bool:

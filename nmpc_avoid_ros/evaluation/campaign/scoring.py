@@ -23,8 +23,9 @@ Extending: a new per-run measure is one more entry in the dict of the RECORD_SEC
 belongs to (or one more function in RECORD_SECTIONS), plus a line in summary.DEFINITIONS; a
 measure derived from stored raw measures belongs in `classify` (so rebuilt summaries use the
 current definition); summary keys live in summary.py. Time-measured fields are listed in
-TIMED_FIELDS: they are the only ones that may differ between two runs of the same scenario (see
-running.comparable).
+TIMED_FIELDS (see running.comparable). Where the sample's clock cut no start (`starts_cut_by_time` 0) they are
+the only ones that differ between two runs of the same scenario; where it did, the outcome itself may differ
+with the machine's load (campaign bicycle-0011: converged at max_solve_time 0.15 s, 4.2 short at 0.1 s).
 """
 
 from __future__ import annotations
@@ -82,7 +83,7 @@ FALLBACK_KINDS = tuple(StepStatus(f"fallback_{kind}") for kind in FALLBACK_CANDI
 #: penetration from this sample on is where the input can act (x(1) is fixed by x(0), u(0) partly)
 FIRST_ACTED_SAMPLE = 2
 #: record fields measured in wall time (machine- and load-dependent); ('trace', 'solve_ms') is nested
-TIMED_FIELDS = ("wall_s", "solve_ms", ("trace", "solve_ms"))
+TIMED_FIELDS = ("wall_s", "solve_ms", ("trace", "solve_ms"), "starts_cut_by_time")
 #: a sample is nominal for the certificate when the measured state is this close (inf-norm) to the
 #: previous plan's x(1) (the Euler plant: ~1e-16; the continuous plant: up to ~1 on van der Pol)
 NOMINAL_MISMATCH = 1e-6
@@ -246,7 +247,9 @@ def robustness_section(s: Scored) -> dict[str, Any]:
     penetration_after_first_step: max g over x(2..K) (0 if never inside); fallback_penetration: max
     g over the `horizon` states after each fallback sample (0 without fallbacks); escapes_tried:
     samples that solved escape guesses; escapes_taken: samples whose plan came from one; passages:
-    entries into the passage mode (core/sample/passage.py); passage_samples: samples spent in it.
+    entries into the passage mode (core/sample/passage.py); passage_samples: samples spent in it;
+    starts_cut_by_time: solves the sample's deadline stopped and starts its spent budget skipped (SearchReport.
+    cut_by_time): where not 0, the run's outcome may depend on the machine's load.
     """
     run = s.run
     keep = keep_in_values(s.settings, s.model, run.x, run.u)
@@ -272,6 +275,7 @@ def robustness_section(s: Scored) -> dict[str, Any]:
         "escapes_taken": sum(r.guess_taken for r in run.searches),
         "passages": sum(r.entered_passage for r in run.searches),
         "passage_samples": sum(r.phase == "passage" or r.entered_passage for r in run.searches),
+        "starts_cut_by_time": sum(r.cut_by_time for r in run.searches),
     }
 
 

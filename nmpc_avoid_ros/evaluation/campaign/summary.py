@@ -107,6 +107,8 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "passages": sum(r.get("passages", 0) for r in records),
         "passage_samples": sum(r.get("passage_samples", 0) for r in records),
         "runs_with_passage": sum(r.get("passages", 0) > 0 for r in records),
+        "starts_cut_by_time": sum(r.get("starts_cut_by_time", 0) for r in records),
+        "runs_with_starts_cut_by_time": sum(r.get("starts_cut_by_time", 0) > 0 for r in records),
         "solve_ms": time_stats(np.concatenate([r["trace"]["solve_ms"] for r in records]))
         if all("trace" in r for r in records) else None,
         "runs_with_fallback": sum(r["fallbacks"] > 0 for r in records),
@@ -188,6 +190,9 @@ DEFINITIONS = {
     "escapes": "escapes_tried: samples that solved local-minimum escape guesses (core/sample/candidates.py); "
                "escapes_taken: samples whose plan came from one; passages: entries into the passage mode "
                "(core/sample/passage.py, the longer escape_horizon), passage_samples: samples spent in it",
+    "starts_cut_by_time": "solver starts the sample's deadline stopped or its spent budget skipped (core/nlp/search.py "
+                          "SearchReport.cut_by_time), and the runs with any: their outcomes may depend on the "
+                          "machine's load (a scene that converges alone can fail beside a second job)",
     "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
     "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
                           "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",
@@ -241,7 +246,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"(avoidable start {_fmt(s['fallback_penetration_avoidable_start'])})",
             f"  fallbacks by candidate {_kinds(s['fallback_kinds'])}; escapes tried {s['escapes_tried']}, taken "
             f"{s['escapes_taken']} in {s['runs_with_escape_taken']} runs; passages {s.get('passages', 0)} in "
-            f"{s.get('runs_with_passage', 0)} runs ({s.get('passage_samples', 0)} samples)",
+            f"{s.get('runs_with_passage', 0)} runs ({s.get('passage_samples', 0)} samples); starts cut by the "
+            f"clock {s.get('starts_cut_by_time', 0)} in {s.get('runs_with_starts_cut_by_time', 0)} runs",
         ]
         if s.get("certificate_checked"):
             lines.append(f"  certificate violations {s['certificate_violations']} of {s['certificate_checked']} "
