@@ -402,4 +402,5 @@ def test_starts_the_clock_cut_are_counted_so_a_load_dependent_outcome_shows(camp
     (record,) = read_jsonl(tmp_path / JSONL_NAME).values()
     assert record["starts_cut_by_time"] > 0 and "starts_cut_by_time" not in comparable(record)
     summary = json.loads((tmp_path / "summary.json").read_text())["summary"]["vdp"]
-    assert summary["starts_cut_by_time"] == record["starts_cut_by_time"] and summary["runs_with_starts_cut_by_time"] == 1
+    assert summary["starts_cut_by_time"] == record["starts_cut_by_time"]
+    assert summary["runs_with_starts_cut_by_time"] == 1
