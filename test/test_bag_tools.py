@@ -630,3 +630,24 @@ def test_recorded_setup_finds_the_controller_and_its_plant_and_says_what_it_cann
     setup = recorded_setup(bag(empty, broken), "/vdp/controller")
     assert setup.controller is None and setup.plant is None
     assert any("do not parse" in n for n in setup.notes) and any("lack its model" in n for n in setup.notes)
+
+
+def test_the_interface_of_a_bag_without_the_controllers_parameters_is_inferred_from_its_topics():
+    """A planar model's plant publishes Odometry on odom for the views on the array interface too: a bag whose
+    controller parameters were not recorded is the array interface when its command or state carries arrays
+    (the moving-walker scene demo's bag was once read as a robot's: its 3-value poses for a 4-state model)."""
+    from pathlib import Path
+
+    from nmpc_avoid_ros.bag.mcap_io import Bag
+    from nmpc_avoid_ros.bag.timeline import ARRAY_TYPE, ODOMETRY_TYPE, controller_interface
+
+    def bag(**topics):
+        return Bag(Path("x.mcap"), {name: [(1, object())] for name in topics},
+                   {name: kind for name, kind in topics.items()}, True, [])
+
+    odom = {"/odom": ODOMETRY_TYPE}
+    array = controller_interface(bag(**odom, **{"/state": ARRAY_TYPE, "/command": ARRAY_TYPE}), None)
+    assert array.name == "array" and "/command carries arrays" in array.source
+    robot = controller_interface(bag(**odom, **{"/cmd_vel": "geometry_msgs/msg/TwistStamped"}), None)
+    assert robot.name == "robot" and "/odom is Odometry" in robot.source
+    assert controller_interface(bag(**odom), {"interface": "array"}).name == "array"  # recorded: as recorded

@@ -30,6 +30,8 @@ from .mcap_io import Bag
 
 #: the types of the robot interface's odometry and goals (nodes/controller_io.RobotInterface)
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+#: the array interface's state and command
+ARRAY_TYPE = "std_msgs/msg/Float64MultiArray"
 GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
 
 
@@ -62,13 +64,19 @@ class Interface:
 
 
 def controller_interface(bag: Bag, node_params: dict[str, Any] | None) -> Interface:
-    """The interface the controller ran with: its recorded parameters, else inferred (an Odometry topic
-    named odom: the robot interface)."""
+    """The interface the controller ran with: its recorded parameters, else inferred from the topics: the array
+    interface's `command` or `state` with messages (a planar model's plant publishes Odometry on odom for the
+    views on the array interface too), else an Odometry topic named odom: the robot interface."""
     params = node_params or {}
     target = params.get("target")
     initial = list(target) if isinstance(target, list | tuple) else None
     if "interface" in params:
         return Interface(str(params["interface"]), str(params.get("odom_frame", "odom")), initial)
+    arrays = [t for t in (topic_named(bag, "command"), topic_named(bag, "state"))
+              if t is not None and bag.topics.get(t) and bag.types.get(t) == ARRAY_TYPE]
+    if arrays:
+        return Interface("array", initial_target=initial,
+                         source=f"inferred: no recorded interface parameter, and {arrays[0]} carries arrays")
     odom = topic_named(bag, "odom")
     if odom is not None and bag.types.get(odom) == ODOMETRY_TYPE:
         return Interface("robot", str(params.get("odom_frame", "odom")), initial,
