@@ -80,8 +80,9 @@ PLANT_SPECS = [
               ParameterType.PARAMETER_DOUBLE, read_only=True, float_range=(0.1, 10000.0)),
     ParamSpec("lockstep", False, "advance one sample_time per command and publish /clock",
               ParameterType.PARAMETER_BOOL, read_only=True),
-    ParamSpec("wait_for_subscribers", 1, "lockstep: publish x0 once this many `state` subscribers are matched "
-              "(controller, recorder, ...)", ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(1, 1000)),
+    ParamSpec("wait_for_subscribers", 1, "lockstep: publish x0 once this many `state` subscribers have stayed "
+              "matched for 0.5 s (controller, recorder, ...)", ParameterType.PARAMETER_INTEGER, read_only=True,
+              int_range=(1, 1000)),
     ParamSpec("max_steps", 0, "lockstep: advance at most this many samples, then hold and publish nothing more "
               "(0: no limit); a run of known length ends quiet, so stopping the nodes loses no message in flight",
               ParameterType.PARAMETER_INTEGER, read_only=True, int_range=(0, 10**9)),
@@ -113,6 +114,11 @@ PLANT_SPECS = [
 ]
 
 
+#: s the lockstep plant's `state` readers stay matched before it publishes x0, its only publication until a command:
+#: DDS discovery is asymmetric, the writer sees a reader before the reader sees the writer, and a volatile reader
+#: drops what was written before it matched it (the world's lockstep loop never started, twice in full suites:
+#: the controller up, the target applied, no command in 240 s)
+INITIAL_SETTLE = 0.5
 #: s: a DDS reception stamp further back than this (or in the future) is not trusted: the callback's own time
 RECEPTION_STAMP_SKEW = 0.5
 
@@ -209,6 +215,7 @@ class PlantNode(Node):
         if self.lockstep:
             self.pub_clock = self.create_publisher(Clock, "/clock", STREAM_QOS)
             # publish x0 once the controller's subscription is matched (then exactly once per command)
+            self.heard_since: float | None = None  # monotonic s since the readers are matched
             self.waiting_timer = self.create_timer(0.05, self.publish_initial_when_heard)
         else:
             self.period = 1.0 / float(values["publish_rate"])
@@ -268,7 +275,13 @@ class PlantNode(Node):
                 transform_stamped(self.odom_frame, self.base_frame, pose, stamp)]))
 
     def publish_initial_when_heard(self) -> None:
-        if self.pub_state.get_subscription_count() >= self.wait_for_subscribers:
+        """Lockstep: x0, once `wait_for_subscribers` readers have stayed matched for INITIAL_SETTLE s."""
+        now = time.monotonic()
+        if self.pub_state.get_subscription_count() < self.wait_for_subscribers:
+            self.heard_since = None
+            return
+        self.heard_since = now if self.heard_since is None else self.heard_since
+        if now - self.heard_since >= INITIAL_SETTLE:
             self.waiting_timer.cancel()
             self.publish_clock()
             self.publish_state()
