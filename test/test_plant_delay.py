@@ -64,14 +64,15 @@ def test_a_real_time_command_acts_from_its_dds_reception_not_from_its_callback(l
     reception stamp (a real actuator does not wait for the interpreter), a stamp it cannot trust from now."""
     import time
 
-    from nmpc_avoid_ros.nodes.plant import RECEPTION_STAMP_SKEW, arrival_instant
+    from nmpc_avoid_ros.nodes.plant import arrival_instant
+    from nmpc_avoid_ros.ros.conversions import DDS_STAMP_SKEW
 
     before = time.monotonic()
     at = arrival_instant({"received_timestamp": time.time_ns() - round(lag * 1e9)})
     after = time.monotonic()
     assert before - lag - 2e-3 <= at <= after - lag + 2e-3
     for untrusted in ({}, None, {"received_timestamp": 0},
-                      {"received_timestamp": time.time_ns() - round((RECEPTION_STAMP_SKEW + 1) * 1e9)},
+                      {"received_timestamp": time.time_ns() - round((DDS_STAMP_SKEW + 1) * 1e9)},
                       {"received_timestamp": time.time_ns() + 10**9}):
         before = time.monotonic()
         assert before <= arrival_instant(untrusted) <= time.monotonic()

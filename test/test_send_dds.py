@@ -141,13 +141,13 @@ def test_the_readme_sequence_through_send_arrives_and_the_live_loop_keeps_the_el
     worst_product, worst_x2 = np.max(np.abs(recorded[:, 0] * recorded[:, 1])), np.max(np.abs(recorded[:, 1]))
     # when the commands took effect against the instant each plan started from (printed: a failure says whether
     # the plant got its commands later than the controller predicted; BENCHMARKS.md, 'Command timing jitter')
-    timing = command_timing(bag, bag_path)
+    settings = ControllerSettings.from_params(load_params_file(LIVE).section("controller"))
+    run = load_run(bag_path, settings=settings, bag=bag)
+    timing = command_timing(bag, run, settings)
     print(f"\nrecorded plant states: {len(recorded)}, max |x1 x2| {worst_product:.5f}, max |x2| {worst_x2:.5f}; "
           f"commands after the predicted instant (ms): {json.dumps(timing)}")
     assert worst_product <= 2 + BOUND and worst_x2 <= 2 + BOUND, (worst_product, worst_x2)
 
-    settings = ControllerSettings.from_params(load_params_file(LIVE).section("controller"))
-    run = load_run(bag_path, settings=settings, bag=bag)
     with_ellipse = [k for k, regions in enumerate(run.regions) if regions]
     assert with_ellipse, "the controller never solved with the ellipse in force"
     metrics = run_metrics(run, settings)

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bag.analysis import load_run
+from ..bag.analysis import RecordedRun, load_run
 from ..bag.mcap_io import Bag, load_bag
 from ..bag.node_parameters import recorded_setup
 from ..core.config.settings import ControllerSettings, default_config_path, load_params_file
@@ -47,11 +47,14 @@ def send(env: dict[str, str], args: list[str]) -> tuple[int, str]:
     return proc.returncode, proc.stderr.strip()
 
 
-def command_timing(bag: Bag, bag_path: Path) -> dict[str, Any]:
+def live_settings() -> ControllerSettings:
+    """The controller settings of config/van_der_pol_live.yaml."""
+    return ControllerSettings.from_params(load_params_file(LIVE).section("controller"))
+
+
+def command_timing(bag: Bag, run: RecordedRun, settings: ControllerSettings) -> dict[str, Any]:
     """ms each sample's command took effect on the plant after the instant its controller planned from
     (median, p90, max over the samples; positive: later), or why the bag does not tell it."""
-    settings = ControllerSettings.from_params(load_params_file(LIVE).section("controller"))
-    run = load_run(bag_path, settings=settings, bag=bag)
     choice = recorded_plant(bag, recorded_setup(bag, "/controller"), settings, None, run)
     beyond = choice.timing.beyond_prediction() * 1e3 if choice.timing is not None else np.zeros(0)
     if not beyond.size:
@@ -92,11 +95,13 @@ def one_run(compensate: bool, domain: int, folder: Path) -> dict[str, Any]:
     subprocess.run([sys.executable, "-m", "nmpc_avoid_ros", "analyze", str(bag_path), "--out", str(out)], env=env,
                    capture_output=True, text=True, timeout=600, check=False)
     metrics_file = out / "metrics.json"
+    settings = live_settings()
+    timing = command_timing(bag, load_run(bag_path, settings=settings, bag=bag), settings)
     analyzed = json.loads(metrics_file.read_text())["bags"] if metrics_file.exists() else None
     return {"latency_compensation": compensate, "states": len(states),
             "max_abs_x1x2": float(np.max(np.abs(states[:, 0] * states[:, 1]))),
             "max_abs_x2": float(np.max(np.abs(states[:, 1]))), "max_ellipse_g": float(np.max(ellipse_g)),
-            "refused_sends": refused, "command_timing_ms": command_timing(bag, bag_path), "analyze": analyzed}
+            "refused_sends": refused, "command_timing_ms": timing, "analyze": analyzed}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -56,7 +56,7 @@ from ..core.loop.certificate import CertificateSample, StabilityCertificate
 from ..core.sample.controller import NmpcController
 from ..core.sample.status import FeedbackOutcome
 from ..core.sample.step_result import StepResult
-from ..ros.conversions import array_to_vector
+from ..ros.conversions import array_to_vector, dds_stamp_age_ns
 from ..ros.markers import RegionStore
 from ..ros.parameters import (
     LATEST_QOS,
@@ -81,8 +81,6 @@ from .runner import PoolExecutor, run_node
 NODE_SPECS = node_settings_specs()
 
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
-#: s: a state's DDS source timestamp further than this before its arrival (or after it) is not trusted
-SOURCE_STAMP_SKEW = 0.5
 
 
 class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
@@ -264,13 +262,13 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
     def state_clock(self, info: dict | None = None) -> float:
         """Node-clock time (s) of a state arriving now. Real time: when its publisher wrote it (DDS source
         stamp in `info`; a busy executor must not make it look younger: its age is predicted over), unless
-        that is SOURCE_STAMP_SKEW off. Lockstep on sim time: its sample time, max(clock, last state's +
+        that is DDS_STAMP_SKEW off. Lockstep on sim time: its sample time, max(clock, last state's +
         sample_time) in ns (the plant's /clock tick, on another topic, may be handled after the state)."""
         clock = self.get_clock()
         now_ns = clock.now().nanoseconds
-        source_ns = int((info or {}).get("source_timestamp", 0))
-        if not clock.ros_time_is_active and 0 <= now_ns - source_ns <= SOURCE_STAMP_SKEW * 1e9:
-            now_ns = source_ns
+        age_ns = dds_stamp_age_ns(info, "source_timestamp", now_ns)
+        if not clock.ros_time_is_active and age_ns is not None:
+            now_ns -= age_ns
         if self.lockstep and clock.ros_time_is_active and self.state_time_ns is not None:
             now_ns = max(now_ns, self.state_time_ns + round(self.controller.settings.sample_time * 1e9))
         self.state_time_ns = now_ns

@@ -54,7 +54,7 @@ from ..core.config.settings import INTERFACES
 from ..core.errors import ConfigError, InputError
 from ..core.loop.closed_loop import ContinuousPlant, DiscretePlant
 from ..core.problem.models import make_model, parse_model_parameters
-from ..ros.conversions import array_to_vector, vector_to_array
+from ..ros.conversions import array_to_vector, dds_stamp_age_ns, vector_to_array
 from ..ros.parameters import LATCHED_QOS, LATEST_QOS, STREAM_QOS, ParamSpec, declare, finite_vector
 from ..ros.robot import check_robot_model, state_to_odometry, twist_to_command, yaw_quaternion
 from .plant_lidar import LIDAR_SPECS, SimulatedLidar
@@ -119,8 +119,6 @@ PLANT_SPECS = [
 #: drops what was written before it matched it (the world's lockstep loop never started, twice in full suites:
 #: the controller up, the target applied, no command in 240 s)
 INITIAL_SETTLE = 0.5
-#: s: a DDS reception stamp further back than this (or in the future) is not trusted: the callback's own time
-RECEPTION_STAMP_SKEW = 0.5
 
 
 def arrival_instant(info: dict | None) -> float:
@@ -130,8 +128,8 @@ def arrival_instant(info: dict | None) -> float:
     17 ms after their reception, and the plant acting from then broke the box |x2| <= 2 by 0.02 where the
     controller had predicted the command's arrival to the millisecond (test/test_send_dds.py)."""
     now = time.monotonic()
-    lag = (time.time_ns() - int((info or {}).get("received_timestamp", 0))) * 1e-9
-    return now - lag if 0.0 <= lag <= RECEPTION_STAMP_SKEW else now
+    age_ns = dds_stamp_age_ns(info, "received_timestamp", time.time_ns())  # None: untrusted, the callback's time
+    return now - (age_ns or 0) * 1e-9
 
 
 def tf_message_type() -> type | None:

@@ -17,6 +17,16 @@ from ..core.errors import InputError
 from ..core.sample.step_result import validate_vector
 
 _NS_PER_S = 1_000_000_000
+#: s: a message's DDS stamp further than this before now (or after it) is not trusted
+DDS_STAMP_SKEW = 0.5
+
+
+def dds_stamp_age_ns(info: dict | None, key: str, now_ns: int) -> int | None:
+    """ns from a message's DDS stamp `key` in its rclpy message info (`source_timestamp`: its publisher's write;
+    `received_timestamp`: its reception, by the middleware's thread) to `now_ns` (system clock), or None when
+    the stamp is missing or more than DDS_STAMP_SKEW off."""
+    age = now_ns - int((info or {}).get(key, 0))
+    return age if 0 <= age <= DDS_STAMP_SKEW * _NS_PER_S else None
 
 
 def array_to_vector(msg: Float64MultiArray, size: int, name: str) -> np.ndarray:
