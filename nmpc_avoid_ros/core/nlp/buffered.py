@@ -39,6 +39,11 @@ class Buffered:
         self._buffer = buffer
         self.seconds = 0.0
 
+    def bind(self, index: int, value: np.ndarray) -> None:
+        """Replace the fixed input `index` [its nnz, column-major for a matrix] (e.g. a prepared law's data, bound once
+        and then read by every call)."""
+        np.copyto(self._args[index], np.ravel(value, order="F"))
+
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
         for target, value in zip(self._free, args, strict=True):
             np.copyto(target, np.ravel(value))

@@ -118,12 +118,11 @@ def compiled_function(function: ca.Function, folder: Path) -> ca.Function:
     if not library.exists():
         compiler = prepare_folder(folder)
         with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            cwd = os.getcwd()
-            os.chdir(tmp)  # generate writes into the working directory
-            try:
-                function.generate(f"{name}.c")
-            finally:
-                os.chdir(cwd)
+            # written under a prefix, not the working directory: threads compile these at once (a first start
+            # compiles one per feedback law in the background), and a chdir is the whole process's
+            generator = ca.CodeGenerator(f"{name}.c")
+            generator.add(function)
+            generator.generate(f"{tmp}{os.sep}")
             built = Path(tmp) / f"{name}.so"
             returncode, stderr = _compile(compiler, Path(tmp) / f"{name}.c", built, own_group=False)
             if returncode != 0:

@@ -27,7 +27,7 @@ nonlinear problem at the new parameters (core/sample/feedback.py). Elsewhere the
 from __future__ import annotations
 
 import time as clock
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -155,6 +155,8 @@ class FeedbackLaw:
     columns: the parameters followed (indices into par); dw [n_w, len(columns)];
     multiplier [k]: the active inequalities' multipliers, signed so that >= 0 keeps each active,
     scaled by 1 + |lam|; multiplier_change [k, len(columns)] their change; seconds: time to build it.
+    A sample applies it in one generated call (core/sample/feedback.py `answer_function`): w + dw dp, and the
+    checks that the active set holds (multiplier + multiplier_change dp >= 0) and the moved plan is feasible.
     """
 
     w: np.ndarray
@@ -164,33 +166,5 @@ class FeedbackLaw:
     multiplier: np.ndarray
     multiplier_change: np.ndarray
     seconds: float = 0.0
-    _cached: tuple[bytes, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
-
-    def change(self, par: np.ndarray) -> np.ndarray | None:
-        """The change of the followed parameters to `par` [n_p] (None: another parameter changed too, e.g.
-        the target or a weight: the law does not follow those)."""
-        dp = par - self.par
-        followed = dp[self.columns]
-        dp[self.columns] = 0.0
-        if np.any(dp != 0.0):
-            return None
-        return followed
-
-    def predict(self, dp: np.ndarray) -> np.ndarray | None:
-        """The plan w + dw [n_w] for the change dp of the followed parameters, or None where an active
-        constraint would leave the active set (its multiplier crosses zero)."""
-        moved = np.flatnonzero(dp)
-        change, dw = self._columns(moved)
-        step = dp[moved]
-        if self.multiplier.size and np.any(self.multiplier + change @ step < -MULTIPLIER_TOLERANCE):
-            return None
-        return self.w + dw @ step
-
-    def _columns(self, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The columns of multiplier_change and dw of the parameters that moved, kept for the next call with the
-        same ones (usually x(0) alone: a fancy-indexed copy per call costs more than the product)."""
-        key = moved.tobytes()
-        if self._cached is None or self._cached[0] != key:
-            self._cached = (key, np.ascontiguousarray(self.multiplier_change[:, moved]),
-                            np.ascontiguousarray(self.dw[:, moved]))
-        return self._cached[1], self._cached[2]
+    #: the plan's cost terms (V_o, V_a, tracking) [3] and their Jacobians [3, n_w], [3, n_p] (the caller's)
+    costs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None

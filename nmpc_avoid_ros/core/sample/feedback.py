@@ -32,7 +32,7 @@ from ..errors import ConfigError
 from ..nlp.buffered import Buffered
 from ..nlp.codegen import compiled_function, function_library
 from ..nlp.search import VIOLATION_TOLERANCE, SearchReport
-from ..nlp.sensitivity import FeedbackLaw, KktSensitivity
+from ..nlp.sensitivity import MULTIPLIER_TOLERANCE, FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
 from .status import FeedbackOutcome
 from .step_result import Plan
@@ -49,27 +49,22 @@ MOVED_PLAN_TOLERANCE = 1e-4
 
 
 @dataclass
-class LinearCosts:
-    """The cost terms (V_o, V_a, tracking) [3] of a plan w [n_w] at parameters par [n_p], and their Jacobians
-    [3, n_w], [3, n_p]: a moved plan's terms to first order, like the plan itself, without evaluating them
-    (40 us interpreted on the live van der Pol NLP; the moved plan's answer takes about 100)."""
+class Moved:
+    """The prepared plan moved to the sample's parameters by its law: w [n_w] in the law NLP's layout, its steady
+    state x_a [n] and input u_a [m], and its cost terms (V_o, V_a, tracking) at those parameters (the certificate's
+    V_N), all from the one compiled call of the answer."""
 
-    values: np.ndarray
-    by_w: np.ndarray
-    by_p: np.ndarray
     w: np.ndarray
-    par: np.ndarray
-
-    def at(self, w: np.ndarray, par: np.ndarray) -> tuple[float, float, float]:
-        values = self.values + self.by_w @ (w - self.w) + self.by_p @ (par - self.par)
-        return float(values[0]), float(values[1]), float(values[2])
+    x_a: np.ndarray
+    u_a: np.ndarray
+    costs: tuple[float, float, float]
 
 
 @dataclass
 class Prepared:
     """A sample solved ahead: the plan for the state x [n] predicted at `time` (s, the regions' clock, or
     None) with the delay `delay` (s) of the sample it is for; its NLP and law (or why there is none);
-    seconds: the preparation's solver time plus building the law; costs: its cost terms, to move with it."""
+    seconds: the preparation's solver time plus building the law."""
 
     plan: Plan
     nlp: NlpBase
@@ -79,20 +74,20 @@ class Prepared:
     time: float | None
     delay: float
     seconds: float
-    costs: LinearCosts | None = None
     report: SearchReport | None = None  # what the preparation's search did (the answered sample's `search`)
 
 
 class FeedbackLaws:
-    """The KKT sensitivity of each NLP given (the controller gives its regular one), its feasibility test of a moved
-    plan and the Jacobians of its cost terms; all built in the constructor (core/nlp/sensitivity.py)."""
+    """The KKT sensitivity of each NLP given (the controller gives its regular one and its tiers) and its answer: one
+    CasADi Function (answer_function) that moves a prepared plan by its law and checks it, bound to the law once
+    when it is prepared; all built in the constructor (core/nlp/sensitivity.py)."""
 
     def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None, background: bool = False) -> None:
-        """`compiled_in`: the feasibility tests are compiled and cached there (core/nlp/codegen.py; None: not);
+        """`compiled_in`: the answers are compiled and cached there (core/nlp/codegen.py; None: not);
         `background`: one missing from the cache is compiled by a thread while the interpreted one serves (a first
         start waits for nothing, as the solvers with codegen_background)."""
         self._sensitivity: dict[int, KktSensitivity] = {}
-        self._violation: dict[int, Buffered] = {}
+        self._answer: dict[int, _Answer] = {}
         self._cost_jacobian: dict[int, ca.Function] = {}
         for nlp in nlps:
             n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
@@ -106,58 +101,100 @@ class FeedbackLaws:
             terms = ca.vertcat(*nlp.terms.function(w, p))  # V_o, V_a, tracking
             self._cost_jacobian[id(nlp)] = ca.Function("cost_jacobian", [w, p], [terms, ca.jacobian(terms, w),
                                                                                  ca.jacobian(terms, p)])
-            violation = _violation_function(nlp)
+            answer = answer_function(nlp, followed)
             if compiled_in is None:
-                self._violation[id(nlp)] = Buffered(violation)
-            elif background and not function_library(violation, compiled_in).exists():
-                self._violation[id(nlp)] = Buffered(violation)
-                threading.Thread(target=self._compile, args=(id(nlp), violation, compiled_in), daemon=True,
-                                 name="feasibility-test-compile").start()
+                self._answer[id(nlp)] = _Answer(answer)
+            elif background and not function_library(answer, compiled_in).exists():
+                self._answer[id(nlp)] = _Answer(answer)
+                threading.Thread(target=self._compile, args=(id(nlp), answer, compiled_in), daemon=True,
+                                 name="feedback-answer-compile").start()
             else:
-                self._violation[id(nlp)] = Buffered(compiled_function(violation, compiled_in))
+                self._answer[id(nlp)] = _Answer(compiled_function(answer, compiled_in))
 
-    def _compile(self, key: int, violation: ca.Function, folder: Path) -> None:
-        """Compile a feasibility test and swap it in (one dict assignment: a feedback call uses either)."""
+    def _compile(self, key: int, answer: ca.Function, folder: Path) -> None:
+        """Compile an answer and swap it in (one dict assignment: a feedback call uses either; the new one is bound
+        to its law at its first call)."""
         try:
-            self._violation[key] = Buffered(compiled_function(violation, folder))
-        except ConfigError as error:  # the interpreted test serves on, as a failed solver compile does
-            log.warning(f"the feedback law's feasibility test stays interpreted: {error}")
+            self._answer[key] = _Answer(compiled_function(answer, folder))
+        except ConfigError as error:  # the interpreted answer serves on, as a failed solver compile does
+            log.warning(f"the feedback law's answer stays interpreted: {error}")
 
     def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
-        """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none."""
+        """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none; a law is bound to the answer."""
         if id(nlp) not in self._sensitivity:
             return "no law for this NLP (the passage mode's long one: its samples search)"
         layout = nlp.layout
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
         w = nlp.fill_slacks(layout.join_w(plan.inputs, plan.states[1:], plan.y_a, rest, x0=plan.states[0]), par)
-        return self._sensitivity[id(nlp)].law(w, par, (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg))
-
-    def costs(self, nlp: NlpBase, w: np.ndarray, par: np.ndarray) -> LinearCosts:
-        """The cost terms of the plan w at par, and their first-order change (for a moved plan's, cheaply)."""
-        values, by_w, by_p = (np.asarray(v) for v in self._cost_jacobian[id(nlp)](w, par))
-        return LinearCosts(values.ravel(), by_w, by_p, w.copy(), par.copy())
+        law = self._sensitivity[id(nlp)].law(w, par, (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg))
+        if not isinstance(law, str):
+            # the cost terms move with the plan to first order, like the plan itself (exact ones would cost the
+            # answer as much again: they integrate the sub-steps as the feasibility test does)
+            law.costs = tuple(np.asarray(v) for v in self._cost_jacobian[id(nlp)](law.w, par))
+            self._answer[id(nlp)].bind(law)
+        return law
 
     def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float,
-               allowance: float = VIOLATION_TOLERANCE) -> tuple[np.ndarray | None, FeedbackOutcome]:
-        """The prepared plan's w moved to the parameters `par` of the sample that arrived, or None and why
-        (the moved plan's slacks must be within `allowance`, as a searched plan's depth to be clear: the sample's
-        `depth_allowance`, core/nlp/search.py; inf: not checked)."""
+               allowance: float = VIOLATION_TOLERANCE) -> tuple[Moved | None, FeedbackOutcome]:
+        """The prepared plan moved to the parameters `par` of the sample that arrived (in the law NLP's layout), or
+        None and why (the moved plan's slacks must be within `allowance`, as a searched plan's depth to be clear:
+        the sample's `depth_allowance`, core/nlp/search.py; inf: not checked). One compiled call."""
         law = prepared.law
         if law is None:
             return None, FeedbackOutcome.NO_LAW
-        change = law.change(par)
-        if change is None:
+        answer = self._answer[id(prepared.nlp)]
+        if answer.law is not law:  # swapped in by a compile since the law was prepared
+            answer.bind(law)
+        w, others, step, slack, violation, x_a, u_a, costs = answer.call(par)
+        if others[0] != 0.0:
             return None, FeedbackOutcome.INPUTS_CHANGED
-        w = law.predict(change)
-        if w is None:
+        if law.multiplier.size and np.min(law.multiplier + law.multiplier_change @ step) < -MULTIPLIER_TOLERANCE:
             return None, FeedbackOutcome.ACTIVE_SET_CHANGED
-        nlp = prepared.nlp
         # the slacks bound every region row (s >= g), so feasible slacks within the tolerance keep it clear
-        slack_ok = not nlp._slack_index.size or float(np.max(w[nlp._slack_index])) <= allowance
-        tolerance = max(feasibility_tolerance, MOVED_PLAN_TOLERANCE)
-        if not slack_ok or float(self._violation[id(nlp)](w, par)[0][0]) > tolerance:
+        if slack[0] > allowance or violation[0] > max(feasibility_tolerance, MOVED_PLAN_TOLERANCE):
             return None, FeedbackOutcome.INFEASIBLE
-        return w, FeedbackOutcome.ANSWERED
+        return Moved(w.copy(), x_a.copy(), u_a.copy(), (float(costs[0]), float(costs[1]), float(costs[2]))), \
+            FeedbackOutcome.ANSWERED
+
+
+def answer_function(nlp: NlpBase, followed: np.ndarray) -> ca.Function:
+    """(par [n_p]; bound: the law's par̄ [n_p], w̄ [n_w], dw [n_w, c], and its plan's cost terms [3] with their
+    Jacobians [3, n_w], [3, n_p]) -> the moved plan w = w̄ + dw dp [n_w], the largest change of a parameter the law
+    does not follow (0: none), dp [c], the largest slack, the largest constraint violation (0: feasible), x_a [n],
+    u_a [m] and the cost terms [3] to first order. dp is the change of the c `followed` parameters. One call of
+    generated code answers a sample (the feasibility test is most of it: 5.5 us on the paper's run, compiled)."""
+    n_w, n_p, c = nlp.layout.n_w, nlp.parameter_count, followed.size
+    par, ref_par, ref_w = ca.SX.sym("par", n_p), ca.SX.sym("ref_par", n_p), ca.SX.sym("ref_w", n_w)
+    dw = ca.SX.sym("dw", n_w, c)
+    costs, costs_by_w, costs_by_p = ca.SX.sym("costs", 3), ca.SX.sym("costs_by_w", 3, n_w), ca.SX.sym("by_p", 3, n_p)
+    dp = par - ref_par
+    step = dp[followed.tolist()]
+    w = ref_w + ca.mtimes(dw, step)
+    others = np.setdiff1d(np.arange(n_p), followed)
+    other_change = ca.mmax(ca.fabs(dp[others.tolist()])) if others.size else ca.SX(0)
+    slacks = nlp._slack_index
+    slack = ca.mmax(w[slacks.tolist()]) if slacks.size else ca.SX(-np.inf)
+    x_a, u_a = nlp.steady.function(w)
+    moved_costs = costs + ca.mtimes(costs_by_w, w - ref_w) + ca.mtimes(costs_by_p, dp)
+    outputs = [w, other_change, step, slack, _violation_function(nlp)(w, par), x_a, u_a, moved_costs]
+    return ca.Function("feedback_answer", [par, ref_par, ref_w, dw, costs, costs_by_w, costs_by_p],
+                       [ca.densify(out) for out in outputs])
+
+
+class _Answer:
+    """An answer_function called with par alone, and the law whose data are bound to it."""
+
+    def __init__(self, function: ca.Function) -> None:
+        fixed = {i: np.zeros(function.nnz_in(i)) for i in range(1, function.n_in())}
+        self.call = Buffered(function, fixed=fixed, densify=False)
+        self.law: FeedbackLaw | None = None
+
+    def bind(self, law: FeedbackLaw) -> None:
+        """Bind `law`: its point, its change, its plan's cost terms and their Jacobians."""
+        assert law.costs is not None
+        for index, value in enumerate((law.par, law.w, law.dw, *law.costs), start=1):
+            self.call.bind(index, value)
+        self.law = law
 
 
 def _violation_function(nlp: NlpBase) -> ca.Function:
