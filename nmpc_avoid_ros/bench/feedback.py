@@ -189,10 +189,11 @@ def main(argv: list[str] | None = None) -> int:
         args.markdown.write_text(markdown(records))
     print(markdown(records))
     for variant, node in report.get("dds", {}).items():
-        r = node["round_trip_ms"]
-        print(f"DDS {variant}: state published -> command received median {r['median']:.3f} ms, p90 {r['p90']:.3f}, "
-              f"p99 {r['p99']:.3f}, max {r['max']:.3f} ({r['count']} samples); in the node "
-              f"{node['step_latency_ms'].get('median', float('nan')):.3f} ms median")
+        r, d = node["round_trip_ms"], node["dds_round_trip_ms"]
+        print(f"DDS {variant}: state published -> command in the probe's callback median {r['median']:.3f} ms, "
+              f"p90 {r['p90']:.3f}, p99 {r['p99']:.3f}, max {r['max']:.3f} ({r['count']} samples); -> the command's "
+              f"reception stamp median {d.get('median', float('nan')):.3f}, p99 {d.get('p99', float('nan')):.3f}; "
+              f"in the node {node['step_latency_ms'].get('median', float('nan')):.3f} ms median")
     return 0
 
 

@@ -5,8 +5,12 @@ waits for the command, integrates one sample and publishes the next state. Measu
 
 - `step_latency_ms`: inside the node, from the start of the solve to the command published
   (the node's own diagnostics, one value per sample);
-- `round_trip_ms`: at the probe, from publishing the state to receiving the command (two DDS
-  hops plus the node's work: an upper bound of "state received -> command published");
+- `round_trip_ms`: at the probe, from publishing the state to its Python callback of the command (two DDS
+  hops plus the node's work plus the probe's own executor: an upper bound of "state received -> command
+  published");
+- `dds_round_trip_ms`: from the state's publication (the probe's system clock just before `publish`) to the
+  command's arrival at the probe, as its middleware stamped the reception (`received_timestamp`): state
+  publication to command arrival at an outside subscriber, without the probe's executor;
 - `startup_s`: from starting the node's process to its first command (imports, DDS discovery,
   the solver build and the first, cold-start solve), with an empty solver cache (cold: generate
   and compile) and again with the cache it left (warm); `ready_s`: from starting the process
@@ -80,6 +84,7 @@ def measure_node(samples: int = 300, progress: Callable[[str], None] = print, do
             "build_s": {k: v["build_s"] for k, v in runs.items()},
             "ready_s": {k: v["ready_s"] for k, v in runs.items()},
             "step_latency_ms": _stats(warm["step_latency_ms"]), "round_trip_ms": _stats(warm["round_trip_ms"]),
+            "dds_round_trip_ms": _stats(warm["dds_round_trip_ms"]),
             "missed_samples": warm["missed"], "samples": warm["samples"]}
 
 
@@ -98,14 +103,17 @@ class _PlantProbe:
         self.executor.add_node(self.node)
         self.msg_type = Float64MultiArray
         self.state_pub = self.node.create_publisher(Float64MultiArray, "state", STREAM_QOS)
-        self.commands: list[tuple[float, np.ndarray]] = []
+        #: (perf_counter at the callback, the middleware's reception stamp in system-clock ns, the command)
+        self.commands: list[tuple[float, int, np.ndarray]] = []
         self.latencies: list[float] = []
         #: the node's start-up values from its diagnostics (solver_build_s, ready_time); empty from an older node
         self.startup: dict[str, float] = {}
-        self.node.create_subscription(Float64MultiArray, "command",
-                                      lambda m: self.commands.append((time.perf_counter(), np.array(m.data))),
-                                      STREAM_QOS)
+        self.node.create_subscription(Float64MultiArray, "command", self._on_command, STREAM_QOS)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, STREAM_QOS)
+
+    def _on_command(self, msg, info: dict) -> None:
+        """Two parameters, so that rclpy hands over the message info (its reception stamp)."""
+        self.commands.append((time.perf_counter(), int(info.get("received_timestamp", 0)), np.array(msg.data)))
 
     def _on_diagnostics(self, msg) -> None:
         for status in msg.status:
@@ -114,12 +122,13 @@ class _PlantProbe:
                 self.latencies.append(float(values["step_latency_ms"]))
             self.startup.update({k: float(values[k]) for k in ("solver_build_s", "ready_time") if k in values})
 
-    def publish(self, x: np.ndarray) -> float:
+    def publish(self, x: np.ndarray) -> tuple[float, int]:
+        """Publish the state x; (perf_counter, system clock ns) just before."""
         msg = self.msg_type()
         msg.data = [float(v) for v in x]
-        sent = time.perf_counter()
+        sent, sent_ns = time.perf_counter(), time.time_ns()
         self.state_pub.publish(msg)
-        return sent
+        return sent, sent_ns
 
     def wait_command(self, count: int, timeout: float) -> bool:
         end = time.monotonic() + timeout
@@ -165,18 +174,20 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
         ready = None if ready is None else ready - spawned
         progress(f"node start-up ({label} cache): solver built in {build_s} s, ready after {ready} s, "
                  f"{first:.2f} s to the first command")
-        round_trips, missed = [], 0
+        round_trips, dds_round_trips, missed = [], [], 0
         x = np.array([-5.0, 0.0])
         for k in range(samples):
             if k % 50 == 0:
                 x = np.array([-5.0, 0.0])  # restart the paper run: a new transient every 50 samples
             count = len(probe.commands) + 1
-            sent = probe.publish(x)
+            sent, sent_ns = probe.publish(x)
             if not probe.wait_command(count, 0.5):
                 missed += 1
                 continue
-            received, u = probe.commands[-1]
+            received, received_ns, u = probe.commands[-1]
             round_trips.append((received - sent) * 1e3)
+            if received_ns:
+                dds_round_trips.append((received_ns - sent_ns) * 1e-6)
             x = np.asarray(step(x, u)).ravel()
             if pause > 0:
                 _idle(probe, pause)
@@ -184,6 +195,7 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
         latencies = list(probe.latencies[-len(round_trips):]) if round_trips else []
         return {"startup_s": round(first, 3), "build_s": None if build_s is None else round(build_s, 3),
                 "ready_s": None if ready is None else round(ready, 3), "round_trip_ms": round_trips,
+                "dds_round_trip_ms": dds_round_trips,
                 "step_latency_ms": latencies,
                 "missed": missed, "samples": samples}
     finally:
