@@ -150,7 +150,7 @@ class SampleAnswers:
         """The result of applying `plan` aged by `age` samples at state x (the solve time is set by `step`)."""
         inputs, states = plan.shifted(age)  # of the regular horizon, or the passage mode's
         # into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond them seen)
-        inputs = np.clip(inputs, self._input_lo, self._input_hi)
+        inputs = np.minimum(np.maximum(inputs, self._input_lo), self._input_hi)  # np.clip's dispatch costs ~5 us
         states[0] = x
         return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
                           *plan.costs, status, solver_status, iterations, 0.0, budget_cut)

@@ -143,6 +143,8 @@ def shifted_rows(rows: np.ndarray, last: np.ndarray, by: int) -> np.ndarray:
     if by < 0:
         raise ValueError(f"a plan shifts by 0 or more samples, not {by}")
     rows = np.asarray(rows, float)
+    if by == 0:  # an applied plan as it is: every answered sample's (np.tile and vstack of nothing cost ~10 us)
+        return rows.copy()
     kept = rows[by:]
     return np.vstack([kept, np.tile(last, (len(rows) - len(kept), 1))])
 
