@@ -156,10 +156,10 @@ def dds_latency(samples: int, progress: Callable[[str], None]) -> dict[str, Any]
     """State published -> command received through DDS (bench/node.py's probe, lockstep: the controller answers
     each state as it arrives) with the live config, searched and prepared, from the user's solver cache. The
     probe waits 0.3 s after each command (the preparation runs then, as it would within a 0.5 s sample)."""
-    from .node import measure_node
+    from .node import measure_echo, measure_node
 
     config = default_config_path().parent / "van_der_pol_live.yaml"
-    out = {}
+    out = {"echo": measure_echo(samples, progress)}  # rclpy's own floor, the same probe and stamps
     for feedback in ("false", "true"):
         out["prepared" if feedback == "true" else "searched"] = measure_node(
             samples, progress, config=config, parameters={"lockstep": "true", "target": "[5.0]", "feedback": feedback},
@@ -190,6 +190,10 @@ def main(argv: list[str] | None = None) -> int:
     print(markdown(records))
     for variant, node in report.get("dds", {}).items():
         r, d = node["round_trip_ms"], node["dds_round_trip_ms"]
+        if variant == "echo":
+            print(f"DDS echo (bench/echo.py, rclpy's floor): median {r['median']:.3f} ms in the probe's callback, "
+                  f"{d.get('median', float('nan')):.3f} to the reception stamp, p99 {d.get('p99', float('nan')):.3f}")
+            continue
         print(f"DDS {variant}: state published -> command in the probe's callback median {r['median']:.3f} ms, "
               f"p90 {r['p90']:.3f}, p99 {r['p99']:.3f}, max {r['max']:.3f} ({r['count']} samples); -> the command's "
               f"reception stamp median {d.get('median', float('nan')):.3f}, p99 {d.get('p99', float('nan')):.3f}; "

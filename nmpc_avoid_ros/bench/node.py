@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -86,6 +87,48 @@ def measure_node(samples: int = 300, progress: Callable[[str], None] = print, do
             "step_latency_ms": _stats(warm["step_latency_ms"]), "round_trip_ms": _stats(warm["round_trip_ms"]),
             "dds_round_trip_ms": _stats(warm["dds_round_trip_ms"]),
             "missed_samples": warm["missed"], "samples": warm["samples"]}
+
+
+def measure_echo(samples: int = 200, progress: Callable[[str], None] = print, domain: int | None = None,
+                 timeout: float = 30.0) -> dict[str, Any]:
+    """The same round trips through bench/echo.py's node, which answers each state at once: the floor of rclpy's
+    own path on this machine (two DDS hops, one executor wake-up, one publish)."""
+    domain = domain if domain is not None else 150 + (os.getpid() + 1) % 60
+    os.environ.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    with tempfile.TemporaryDirectory(prefix="nmpc_bench_echo_") as tmp:
+        tmp_path = Path(tmp)
+        os.environ.setdefault("ROS_LOG_DIR", str(tmp_path / "ros_logs"))
+        import rclpy
+
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=domain)
+        probe = _PlantProbe(context)
+        proc = NodeProcess("nmpc_avoid_ros.bench.echo", [], isolated_env(domain, tmp_path / "ros_logs"),
+                           tmp_path / "logs", program=[sys.executable, "-m"])
+        try:
+            started = time.perf_counter()
+            while not probe.wait_command(1, 0.05):
+                probe.publish(np.zeros(1))
+                if not proc.alive() or time.perf_counter() - started > timeout:
+                    raise RuntimeError(f"the echo node gave no answer:\n{proc.output()[-2000:]}")
+            _drain(probe, 1.0)
+            round_trips, dds_round_trips = [], []
+            for _ in range(samples):
+                count = len(probe.commands) + 1
+                sent, sent_ns = probe.publish(np.zeros(1))
+                if probe.wait_command(count, 0.5):
+                    received, received_ns, _ = probe.commands[-1]
+                    round_trips.append((received - sent) * 1e3)
+                    if received_ns:
+                        dds_round_trips.append((received_ns - sent_ns) * 1e-6)
+                _idle(probe, 0.01)
+        finally:
+            proc.stop()
+            probe.close()
+            rclpy.try_shutdown(context=context)
+    result = {"round_trip_ms": _stats(round_trips), "dds_round_trip_ms": _stats(dds_round_trips)}
+    progress(f"echo node: {result}")
+    return result
 
 
 class _PlantProbe:
