@@ -75,9 +75,9 @@ class SearchPhases:
 
     def _regular_starts(self, sample: Sample) -> tuple[list[Start], str]:
         """The sample's first starts and their phase: the passage mode's shifted long plan; a budget-cut
-        iterate continued; a cold start's guesses (on an ellipse tier: the resting plan, then the straight
-        line; then the SQP path itself; then the reference, core/nlp/tiers.py and docs/design.md); or the
-        shifted plan (on the tier that holds the regions)."""
+        iterate continued; a cold start's guesses (on an ellipse tier: a car-like model's rollout, the resting
+        plan, then the straight line; then the SQP path itself; then the reference, core/nlp/tiers.py and
+        docs/design.md); or the shifted plan (on the tier that holds the regions)."""
         carry, s, x, y_t = sample.carry, self.settings, sample.x, sample.y_t
         if carry.passage:
             return [self._start("passage", self._active(carry), sample, s.max_iterations)], "passage"
