@@ -262,12 +262,23 @@ class EscapeGuesses:
             return self.manoeuvre_guesses(x, aim)
         for i, y_new in enumerate(beyond):
             x_new, u_new = (v.copy() for v in self._steady(y_new))
-            out.append(Guess(f"beyond{i}", y_new, self._path(x, [], x_new), np.tile(u_new, (self.horizon, 1))))
+            out.append(self._escape_guess(f"beyond{i}", x, [], x_new, y_new, u_new))
             for j, region in enumerate(regions):
                 for side, waypoint in zip(("left", "right"), self._detours(x, x_new, y_a, y_new, region)):
-                    out.append(Guess(f"beyond{i}_{side}_of_region{j}", y_new, self._path(x, [waypoint], x_new),
-                                     np.tile(u_new, (self.horizon, 1))))
+                    out.append(self._escape_guess(f"beyond{i}_{side}_of_region{j}", x, [waypoint], x_new, y_new, u_new))
         return out
+
+    def _escape_guess(self, label: str, x: np.ndarray, waypoints: list[np.ndarray], x_new: np.ndarray,
+                      y_new: np.ndarray, u_new: np.ndarray) -> Guess:
+        """y_a at y_new, the states along x -> waypoints -> x_new: the polyline, or for a car-like model its own model
+        driven through the waypoints towards x_new (core/sample/rollout.py; FATROP took 160-480 ms from the polyline
+        with steering-rate limits, beyond a sample's budget)."""
+        if self._rollout is None:
+            return Guess(label, y_new, self._path(x, waypoints, x_new), np.tile(u_new, (self.horizon, 1)))
+        planar = self.model.planar
+        plane = [planar.x, planar.y]
+        states, inputs = self._rollout(x, x_new[plane], [w[plane] for w in waypoints])
+        return Guess(label, y_new, states, inputs)
 
     def manoeuvre_guesses(self, x: np.ndarray, y_goal: np.ndarray) -> list[Guess]:
         """A car-like model's ways to the steady state of y_goal [p] from beside it: through the goal pose moved

@@ -11,6 +11,7 @@ around them (a penetrating start is a slack to it, not a failure).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import casadi as ca
 import numpy as np
@@ -24,6 +25,8 @@ HEADING_GAIN = 2.0
 MIN_SPEED_SHARE = 0.3
 #: how much faster than the even pace to the goal over the horizon the guess drives (capped by the input box)
 PACE = 1.5
+#: m from a waypoint at which the pursuit turns to the next
+VIA_REACH = 0.5
 
 
 class Rollout:
@@ -41,14 +44,20 @@ class Rollout:
         speed = planar.command(ca.DM.zeros(model.n), self._input_hi)
         self._top_speed = max(float(speed[0]), 0.0)
 
-    def __call__(self, x: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, x: np.ndarray, goal: np.ndarray, via: Sequence[np.ndarray] = ()
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Pursuit of each of the positions `via` [2] in turn (the next once within VIA_REACH), then of `goal` [2]."""
         planar, N = self._planar, self.horizon
         states, inputs = [], []
         state = np.asarray(x, float)
+        points = [np.asarray(p, float) for p in via] + [np.asarray(goal, float)]
         for k in range(N):
-            offset = goal - state[[planar.x, planar.y]]
+            while len(points) > 1 and np.linalg.norm(points[0] - state[[planar.x, planar.y]]) < VIA_REACH:
+                points.pop(0)
+            offset = points[0] - state[[planar.x, planar.y]]
             error = math.remainder(math.atan2(offset[1], offset[0]) - state[planar.yaw], math.tau)
-            pace = PACE * float(np.linalg.norm(offset)) / (self._dt * (N - k))
+            left = float(np.linalg.norm(offset)) + sum(float(np.linalg.norm(b - a)) for a, b in zip(points, points[1:]))
+            pace = PACE * left / (self._dt * (N - k))
             command = [min(self._top_speed, pace) * max(math.cos(error), MIN_SPEED_SHARE), HEADING_GAIN * error]
             if k == N - 1:
                 command = [0.0, 0.0]
