@@ -205,8 +205,13 @@ class StabilityCertificate:
         # packing, and the regions themselves (a moving one is the same trajectory while its
         # stamp and velocity are)
         s = self.controller.settings
-        key = (par[n:par.size - self.controller.nlp.slot_layout.size].copy(), self.controller.regions,
-               s.predict_obstacles, s.region_margin, self.controller.mismatch_margin)
+        fixed = par[n:par.size - self.controller.nlp.slot_layout.size]
+        commanded = np.arange(fixed.size - 1 - len(s.input_rate_max), fixed.size - 1) if s.input_rate_max \
+            else np.zeros(0, int)
+        # with input_rate_max the command in force (and its flag, last) is state, as x(0) is: the plan's u(0) moves
+        # it every sample (before, every sample of a rate-limited loop was "parameters changed": unchecked)
+        key = (np.delete(fixed, commanded), self.controller.regions, s.predict_obstacles, s.region_margin,
+               self.controller.mismatch_margin)
         changed = what_changed(self._previous.key, key, time, len(tracked)) if self._previous is not None else ()
         previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:
@@ -225,6 +230,8 @@ class StabilityCertificate:
         # with this sample's parameters (moving regions at this sample's stage times)
         candidate_par = par.copy()
         candidate_par[:n] = plan.states[1]
+        if commanded.size:
+            candidate_par[n + commanded] = plan.inputs[0]  # the nominal successor's command in force
         last_u, last_x = self.tail(plan.states[-1], plan.y_a, plan.x_a, plan.u_a)
         candidate = self.plan_cost(np.vstack([plan.states[1:], last_x[None, :]]),
                                    np.vstack([plan.inputs[1:], last_u[None, :]]), plan.y_a, plan.x_a, plan.u_a,

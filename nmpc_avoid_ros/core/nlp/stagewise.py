@@ -169,6 +169,11 @@ class StagewiseNlp(NlpBase):
                     g.append(X[N] - x_a)  # terminal equality (eq. 20h)
                     lbg += [0.0] * n
                     ubg += [0.0] * n
+                    if parts.rate_limited:  # u_a within a rate step of u(N-1) = v(N): the shifted plan stays feasible
+                        rows, lo, hi = parts.rate_rows(u_a, V[N], first=False)
+                        g.append(rows)
+                        lbg += lo
+                        ubg += hi
                 offset += n + p + r
                 break
             last = with_set and k == N - 1

@@ -247,8 +247,11 @@ class TrackingNlp(NlpBase):
         depth.append(avoidance(states[N], u_a, N * ts))
         between.append([])
         if s.input_rate_max:  # |u(j) - u(j-1)| <= rate Ts, u(-1) the command in force (rows where rate is finite)
-            for j in range(N):
-                rows, lo, hi = parts.rate_rows(U[:, j], U[:, j - 1] if j else parts.u_prev, first=j == 0)
+            # and with the terminal equality |u_a - u(N-1)| too: the shifted plan (u(1..N-1), u_a), the candidate of the
+            # paper's decrease argument (docs/certificate.md), then meets the rate rows as the plan did
+            for j in range(N + (s.terminal != "set")):
+                u_j = U[:, j] if j < N else u_a
+                rows, lo, hi = parts.rate_rows(u_j, U[:, j - 1] if j else parts.u_prev, first=j == 0)
                 g.append(rows)
                 lbg, ubg = lbg + lo, ubg + hi
         # F = max(0, g)^2 is only C1, which costs IPOPT many iterations near region boundaries.

@@ -32,7 +32,8 @@ VIA_REACH = 0.5
 class Rollout:
     """x [n], the goal's position [2] -> (x(1..N) [N, n], u(0..N-1) [N, m]) of a planar model with a heading and a
     velocity-command map (PlanarMap.command, from_command): pursuit of the goal's position, at rest in the last
-    stage (u(N-1) the input of a zero command, so that x(N) can be a steady state)."""
+    stage (u(N-1) the input of a zero command, so that x(N) can be a steady state), each input within
+    input_rate_max of the one before (from rest: the guess meets the rate rows of a start from rest too)."""
 
     def __init__(self, model: Model, settings: ControllerSettings, horizon: int) -> None:
         planar = model.planar
@@ -43,13 +44,17 @@ class Rollout:
         self._input_hi = np.asarray(settings.input_max, float)
         speed = planar.command(ca.DM.zeros(model.n), self._input_hi)
         self._top_speed = max(float(speed[0]), 0.0)
+        #: the largest change of each input over a sample (input_rate_max; inf: none), from rest at the first
+        self._rate_step = np.asarray(settings.input_rate_max, float) * settings.sample_time \
+            if settings.input_rate_max else np.full(model.m, np.inf)
+        self._rest_input = np.clip(np.zeros(model.m), self._input_lo, self._input_hi)
 
     def __call__(self, x: np.ndarray, goal: np.ndarray, via: Sequence[np.ndarray] = ()
                  ) -> tuple[np.ndarray, np.ndarray]:
         """Pursuit of each of the positions `via` [2] in turn (the next once within VIA_REACH), then of `goal` [2]."""
         planar, N = self._planar, self.horizon
         states, inputs = [], []
-        state = np.asarray(x, float)
+        state, previous = np.asarray(x, float), self._rest_input
         points = [np.asarray(p, float) for p in via] + [np.asarray(goal, float)]
         for k in range(N):
             while len(points) > 1 and np.linalg.norm(points[0] - state[[planar.x, planar.y]]) < VIA_REACH:
@@ -63,6 +68,7 @@ class Rollout:
                 command = [0.0, 0.0]
             u = np.clip(np.asarray(planar.from_command(state, command), float).ravel(), self._input_lo,
                         self._input_hi)
+            u = previous = np.clip(u, previous - self._rate_step, previous + self._rate_step)  # input_rate_max
             state = np.asarray(self._step(state, u), float).ravel()
             states.append(state)
             inputs.append(u)
