@@ -92,6 +92,13 @@ class TieredNlp:
             else self._static_slots
         return np.concatenate([par[:self._prefix], slots])
 
+    def holding(self, nlp: NlpBase, par: np.ndarray) -> tuple[NlpBase, np.ndarray]:
+        """The NLP a plan of `nlp` at parameters `par` is answered on, and its parameters: where `nlp` is the regular
+        NLP, the tier that holds the regions (the same problem without the empty slots), else `nlp` itself (a
+        prepared plan's feedback law, core/sample/feedback.py)."""
+        tier = self.tier
+        return (tier, self.tier_parameters(par)) if nlp is self.regular and tier is not None else (nlp, par)
+
     def solve(self, w0: np.ndarray, par: np.ndarray, lam_x0: np.ndarray, lam_g0: np.ndarray, cold: bool = False,
               time_limit: float = math.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, float]:
         """NlpBase.solve in the regular layout, on the tier where one holds the regions (multipliers zero)."""

@@ -283,7 +283,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
             mem.advance(carry)  # what the search found (escape and passage guesses tried, a hand-back)
             return None
         self._apply(sample, best, report)
-        nlp, par = self._law_problem(self._active(carry), sample.par)
+        nlp, par = self.tiered.holding(self._active(carry), sample.par)
         # an unconverged plan (e.g. FATROP stopped at an acceptable point) gets a law where its KKT residual allows
         # (with mu = 0 nothing is avoided: a penetrating plan is the problem's answer, as the guard holds)
         # the law is built after a search that left half a sample at least (it takes ~2-30 ms: the next sample
@@ -301,18 +301,12 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         mem.advance(carry)
         return mem.prepared
 
-    def _law_problem(self, nlp: NlpBase, par: np.ndarray) -> tuple[NlpBase, np.ndarray]:
-        """The NLP a law of the regular `nlp` at parameters `par` is built and answered on, and its parameters: the
-        ellipse tier that holds the regions where one does (the same problem without the empty slots), else `nlp`."""
-        tier = self.tiered.tier
-        return (tier, self.tiered.tier_parameters(par)) if nlp is self.nlp and tier is not None else (nlp, par)
-
     def _feedback(self, sample: Sample, prepared: Prepared) -> StepResult | None:
         """The prepared plan moved to this sample's state by its law, as the result; None (the sample searches)
         where the law does not hold (core/sample/feedback.py), with why in `sample.feedback`."""
         assert self.feedback_laws is not None
         s = self.settings
-        nlp, par = self._law_problem(self.nlp, sample.par)
+        nlp, par = self.tiered.holding(self.nlp, sample.par)
         if prepared.law is not None and nlp is not prepared.nlp:  # the regions moved to another tier
             sample.feedback = FeedbackOutcome.INPUTS_CHANGED
             return None
