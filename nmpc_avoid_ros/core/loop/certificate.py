@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..nlp.parts import command_index
 from ..nlp.terminal import ShiftedTail
 from ..problem.regions import Region
 from ..sample.controller import NmpcController
@@ -205,13 +206,12 @@ class StabilityCertificate:
         # packing, and the regions themselves (a moving one is the same trajectory while its
         # stamp and velocity are)
         s = self.controller.settings
-        fixed = par[n:par.size - self.controller.nlp.slot_layout.size]
-        commanded = np.arange(fixed.size - 1 - len(s.input_rate_max), fixed.size - 1) if s.input_rate_max \
-            else np.zeros(0, int)
-        # with input_rate_max the command in force (and its flag, last) is state, as x(0) is: the plan's u(0) moves
-        # it every sample (before, every sample of a rate-limited loop was "parameters changed": unchecked)
-        key = (np.delete(fixed, commanded), self.controller.regions, s.predict_obstacles, s.region_margin,
-               self.controller.mismatch_margin)
+        slot_size = self.controller.nlp.slot_layout.size
+        commanded = command_index(par.size, slot_size, self.controller.model.m, bool(s.input_rate_max))
+        # with input_rate_max the command in force is state, as x(0) is: the plan's u(0) moves it every sample
+        # (before, every sample of a rate-limited loop was "parameters changed": unchecked)
+        key = (np.delete(par[n:par.size - slot_size], commanded - n), self.controller.regions, s.predict_obstacles,
+               s.region_margin, self.controller.mismatch_margin)
         changed = what_changed(self._previous.key, key, time, len(tracked)) if self._previous is not None else ()
         previous, self._previous = self._previous, _Previous(value, key, result)
         if previous is None:
@@ -231,7 +231,7 @@ class StabilityCertificate:
         candidate_par = par.copy()
         candidate_par[:n] = plan.states[1]
         if commanded.size:
-            candidate_par[n + commanded] = plan.inputs[0]  # the nominal successor's command in force
+            candidate_par[commanded] = plan.inputs[0]  # the nominal successor's command in force
         last_u, last_x = self.tail(plan.states[-1], plan.y_a, plan.x_a, plan.u_a)
         candidate = self.plan_cost(np.vstack([plan.states[1:], last_x[None, :]]),
                                    np.vstack([plan.inputs[1:], last_u[None, :]]), plan.y_a, plan.x_a, plan.u_a,

@@ -214,6 +214,13 @@ def problem_parts(settings: ControllerSettings, model: Model) -> ProblemParts:
                         rate_limited, tuple(float(s.input_rate_max[i]) * s.sample_time for i in rate_limited))
 
 
+def command_index(parameter_count: int, slot_size: int, m: int, rate_limited: bool) -> np.ndarray:
+    """Indices of the command in force u_prev [m] in the parameter vector `par` above (of parameter_count entries,
+    the slot block of slot_size last, rate_on just before it); empty without input_rate_max (`rate_limited` False)."""
+    end = parameter_count - slot_size - 1
+    return np.arange(end - m, end) if rate_limited else np.zeros(0, int)
+
+
 def depth_function(parts: ProblemParts, model: Model, keep_in_margin: float | None = None) -> ca.Function:
     """(x [n], u [m], p [n_param], elapsed s) -> region functions g [n_depth] (> 0 inside a region to
     avoid), moving obstacles where they are `elapsed` s after x(0) (stage k: k Ts; steady state: N Ts);

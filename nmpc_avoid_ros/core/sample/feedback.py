@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..nlp.buffered import Buffered
 from ..nlp.codegen import compiled_function, function_library
+from ..nlp.parts import command_index
 from ..nlp.search import VIOLATION_TOLERANCE, SearchReport
 from ..nlp.sensitivity import MULTIPLIER_TOLERANCE, FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
@@ -93,8 +94,7 @@ class FeedbackLaws:
             n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
             # x(0), the command in force (input_rate_max) and each slot's stamp - t_0 (what moves with time; a new
             # region set is searched)
-            commands = np.arange(count - size - 1 - nlp.layout.m, count - size - 1) if nlp.settings.input_rate_max \
-                else np.zeros(0, int)
+            commands = command_index(count, size, nlp.layout.m, bool(nlp.settings.input_rate_max))
             followed = np.concatenate([np.arange(n), commands, count - size + nlp.slot_layout.time_offsets])
             self._sensitivity[id(nlp)] = KktSensitivity(nlp.problem, followed)
             w, p = nlp.problem["x"], nlp.problem["p"]
