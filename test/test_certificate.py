@@ -155,3 +155,23 @@ def test_the_live_config_meets_the_certificate_through_a_target_change_on_the_co
     assert reasons[30] == "parameters changed (target): check restarted"
     assert reasons.count("") == 58
     assert max(c["model_mismatch"] for c in run.certificate[1:]) < 1e-4
+
+
+def test_with_input_rate_limits_the_command_in_force_is_state_and_every_later_sample_is_checked():
+    """input_rate_max makes the command in force a parameter that each plan's u(0) moves: the certificate compares it
+    as state, as x(0) (before, every sample read as 'parameters changed' and none was checked), and the NLP keeps u_a
+    within a rate step of u(N-1), so the shifted candidate meets the rate rows: no violation on the nominal loop."""
+    from nmpc_avoid_ros.core.loop.closed_loop import drive, make_plant, run_closed_loop
+
+    settings = ControllerSettings(input_rate_max=(2.0,))  # the paper's config, |du| <= 1 per 0.5 s sample
+    run = run_closed_loop(NmpcController(settings), [-5.0, 0.0], TARGET, 30, "euler")
+    assert [c["checked"] for c in run.certificate] == [False] + [True] * 29
+    assert violations(run) == 0
+    step = settings.input_rate_max[0] * settings.sample_time
+    assert np.max(np.abs(np.diff(run.u[:, 0]))) <= step + 1e-6
+    controller = NmpcController(settings)
+    plans = drive(controller, make_plant("euler", controller.model, settings), [-5.0, 0.0], TARGET, 30,
+                  settings.sample_time).outcomes
+    solved = [r for r in plans if str(r.status) == "ok"]  # the first sample is a fallback's (u(0) out of reach)
+    assert len(solved) >= 28
+    assert all(abs(r.u_a[0] - r.inputs[-1, 0]) <= step + 1e-6 for r in solved)  # the terminal rate row
