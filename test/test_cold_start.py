@@ -291,3 +291,24 @@ def test_a_cold_start_of_the_car_with_rate_limits_gets_the_iterations_it_needs()
     first = result.search.tried[0]
     assert (first.label, first.solver_status, first.outcome) == ("rest", "0", Outcome.KEPT), result.search.tried
     assert result.status == StepStatus.OK
+
+
+def test_the_cars_cold_and_escape_guesses_are_its_own_model_within_its_rate_limits():
+    """core/sample/rollout.py: the car's rollout guess and its escape guesses (through a detour waypoint, towards the
+    point beyond the block) meet the model's own discrete dynamics exactly and change each input by at most one rate
+    step from rest, where a polyline guess (the other models') meets neither."""
+    settings, controller = bicycle_controller(input_rate_max=(1.0, 1.5))
+    controller.set_regions(list(BICYCLE_ELLIPSES))
+    x, goal = np.array([-4.0, -3.0, 0.0]), np.array([3.0, 2.0, 0.0])
+    escapes = controller.escape.guesses(x, x.copy(), goal, controller.parameters(x, goal, 0.0), controller.regions)
+    detours = [g for g in escapes if "_of_region" in g.label]
+    assert detours and all(g.label.startswith("beyond") for g in escapes)  # the ellipses block: no manoeuvres
+    step = controller.model.discrete(settings.sample_time, settings.discretization, settings.integration_steps)
+    rate = np.array(settings.input_rate_max) * settings.sample_time
+    for guess in [controller.escape.cold_guesses(x, goal)[0], *escapes]:
+        before = np.vstack([x, guess.states[:-1]])
+        moved = np.array([np.asarray(step(a, u)).ravel() for a, u in zip(before, guess.inputs)])
+        assert np.max(np.abs(moved - guess.states)) < 1e-9, guess.label
+        assert np.all(np.abs(np.diff(np.vstack([np.zeros(2), guess.inputs]), axis=0)) <= rate + 1e-12), guess.label
+    left, right = detours[0], detours[1]
+    assert np.max(np.abs(left.states - right.states)) > 0.1  # either side of the region: two ways
