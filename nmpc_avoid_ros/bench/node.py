@@ -114,13 +114,7 @@ def measure_echo(samples: int = 200, progress: Callable[[str], None] = print, do
             _drain(probe, 1.0)
             round_trips, dds_round_trips = [], []
             for _ in range(samples):
-                count = len(probe.commands) + 1
-                sent, sent_ns = probe.publish(np.zeros(1))
-                if probe.wait_command(count, 0.5):
-                    received, received_ns, _ = probe.commands[-1]
-                    round_trips.append((received - sent) * 1e3)
-                    if received_ns:
-                        dds_round_trips.append((received_ns - sent_ns) * 1e-6)
+                _round_trip(probe, np.zeros(1), round_trips, dds_round_trips)
                 _idle(probe, 0.01)
         finally:
             proc.stop()
@@ -222,15 +216,10 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
         for k in range(samples):
             if k % 50 == 0:
                 x = np.array([-5.0, 0.0])  # restart the paper run: a new transient every 50 samples
-            count = len(probe.commands) + 1
-            sent, sent_ns = probe.publish(x)
-            if not probe.wait_command(count, 0.5):
+            u = _round_trip(probe, x, round_trips, dds_round_trips)
+            if u is None:
                 missed += 1
                 continue
-            received, received_ns, u = probe.commands[-1]
-            round_trips.append((received - sent) * 1e3)
-            if received_ns:
-                dds_round_trips.append((received_ns - sent_ns) * 1e-6)
             x = np.asarray(step(x, u)).ravel()
             if pause > 0:
                 _idle(probe, pause)
@@ -244,6 +233,21 @@ def _one_start(probe: _PlantProbe, label: str, cache: Path | None, domain: int, 
     finally:
         proc.stop()
         _drain(probe, 0.5)  # nothing of this node may count for the next start
+
+
+def _round_trip(probe: _PlantProbe, x: np.ndarray, round_trips: list[float], dds_round_trips: list[float],
+                timeout: float = 0.5) -> np.ndarray | None:
+    """Publish the state x and wait for the command; its round trip (ms) to the probe's callback is appended to
+    `round_trips`, to its reception stamp to `dds_round_trips`. Returns the command, None if none came in time."""
+    count = len(probe.commands) + 1
+    sent, sent_ns = probe.publish(x)
+    if not probe.wait_command(count, timeout):
+        return None
+    received, received_ns, u = probe.commands[-1]
+    round_trips.append((received - sent) * 1e3)
+    if received_ns:
+        dds_round_trips.append((received_ns - sent_ns) * 1e-6)
+    return u
 
 
 def _startup(probe: _PlantProbe, log: str) -> tuple[float | None, float | None]:
