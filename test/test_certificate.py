@@ -11,6 +11,7 @@ import pytest
 from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.loop.certificate import LAYOUT, StabilityCertificate
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.status import StepStatus
 
 TARGET = np.array([5.0])
 
@@ -172,6 +173,6 @@ def test_with_input_rate_limits_the_command_in_force_is_state_and_every_later_sa
     controller = NmpcController(settings)
     plans = drive(controller, make_plant("euler", controller.model, settings), [-5.0, 0.0], TARGET, 30,
                   settings.sample_time).outcomes
-    solved = [r for r in plans if str(r.status) == "ok"]  # the first sample is a fallback's (u(0) out of reach)
+    solved = [r for r in plans if r.status is StepStatus.OK]  # the first sample is a fallback's (u(0) out of reach)
     assert len(solved) >= 28
     assert all(abs(r.u_a[0] - r.inputs[-1, 0]) <= step + 1e-6 for r in solved)  # the terminal rate row
