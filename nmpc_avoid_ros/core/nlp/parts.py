@@ -112,10 +112,12 @@ class ProblemParts:
     rate_step: tuple[float, ...] = ()  # their largest change per sample, rate * sample_time
 
     def rate_rows(self, u: ca.SX, before: ca.SX, first: bool) -> tuple[ca.SX, list[float], list[float]]:
-        """The rows |u - before| <= rate Ts of the limited inputs (`first`: before is the command in force, the rows
-        on only where there is one, rate_on) with their lower and upper bounds; empty without limits."""
-        change = self.rate_on * (u - before) if first else u - before
-        return change[list(self.rate_limited)], [-step for step in self.rate_step], list(self.rate_step)
+        """The rows |u - before| <= rate Ts of the limited inputs (u [m]; before [m], or only the limited inputs as
+        a stage-wise v(k) carries them; `first`: before is the command in force, the rows on only where there is
+        one, rate_on) with their lower and upper bounds; empty without limits."""
+        limited = list(self.rate_limited)
+        change = u[limited] - (before if before.numel() == len(limited) else before[limited])
+        return self.rate_on * change if first else change, [-step for step in self.rate_step], list(self.rate_step)
 
     def offset_cost(self, y_a: ca.SX) -> ca.SX:
         """V_o = kappa |y_a - y_t|_W^2 (the paper's kappa |y_a - y_t|^2, to the last operation, without weights)."""

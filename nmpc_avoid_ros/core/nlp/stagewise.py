@@ -78,7 +78,7 @@ class StagewiseLayout:
     n_w: int
     stage_start: np.ndarray  # [N + 1]
     closed_form: bool = True
-    #: m with input_rate_max (each stage carries the input before its own as a state v(k)), else 0
+    #: the number of rate-limited inputs (input_rate_max finite): each stage carries them before its own as v(k)
     n_prev: int = 0
 
     def __post_init__(self) -> None:
@@ -139,8 +139,10 @@ class StagewiseNlp(NlpBase):
 
         X = [ca.SX.sym(f"x{k}", n) for k in range(N + 1)]
         Y = [ca.SX.sym(f"y{k}", p) for k in range(N + 1)]
-        # input_rate_max couples u(k) to u(k-1): each stage carries the input before its own as a state v(k)
-        r = m if s.input_rate_max else 0
+        # input_rate_max couples u(k) to u(k-1): each stage carries the rate-limited inputs before its own as a
+        # state v(k) (only those: a car limited in steering alone carries one state, not two)
+        limited = list(parts.rate_limited)
+        r = len(limited)
         V = [ca.SX.sym(f"v{k}", r) for k in range(N + 1)]
         U = [ca.SX.sym(f"u{k}", m) for k in range(N)]
         S = [ca.SX.sym(f"s{k}", nd) for k in range(N)]
@@ -187,11 +189,11 @@ class StagewiseNlp(NlpBase):
             offset += n + p + r + m + nd * blocks
             # gap-closing constraints first: FATROP's structure detection expects them so
             points = path(X[k], U[k])
-            g.append(ca.vertcat(X[k + 1] - points[:, -1], Y[k + 1] - Y[k], V[k + 1] - U[k] if r else V[k + 1]))
+            g.append(ca.vertcat(X[k + 1] - points[:, -1], Y[k + 1] - Y[k], V[k + 1] - U[k][limited] if r else V[k + 1]))
             lbg += [0.0] * (n + p + r)
             ubg += [0.0] * (n + p + r)
             if k == 0:
-                g.append(ca.vertcat(X[0] - parts.x0, V[0] - parts.u_prev))
+                g.append(ca.vertcat(X[0] - parts.x0, V[0] - parts.u_prev[limited] if r else V[0]))
                 lbg += [0.0] * (n + r)
                 ubg += [0.0] * (n + r)
                 depth_a = parts.avoidance(x_a, u_a, N * s.sample_time)  # x_a = x(N): obstacles at t_N
@@ -290,7 +292,8 @@ class StagewiseNlp(NlpBase):
         probe = np.arange(w.numel(), dtype=float)
         self._slack_index = np.asarray(index(probe), dtype=int).ravel()
         # v(0..N) of a guess: the command in force, then the plan's own inputs (the gap rows hold from the start)
-        self._prev_value = Buffered(ca.Function("prev_of", [w, par], [ca.vertcat(parts.u_prev, *U)])) if r else None
+        carried = ca.vertcat(*(u[limited] for u in (parts.u_prev, *U))) if r else None
+        self._prev_value = Buffered(ca.Function("prev_of", [w, par], [carried])) if r else None
         # blocks of the uniform stages 1..N-1 (N-2 with the terminal set, whose rows sit at stage N-1), for the dual
         # shift
         self._last_uniform = N - 2 if with_set else N - 1
