@@ -156,8 +156,9 @@ class ControllerSettings:
     input_rate_max: tuple[float, ...] = setting(
         (), "largest change of each input per second (m values, units/s; inf: none), e.g. a robot's acceleration "
             "limits: the plan keeps |u(0) - u_prev| and |u(j) - u(j-1)| within input_rate_max * sample_time, u_prev "
-            "the command in force (none yet: u(0) is free); the fallbacks' inputs are not limited. Empty: off. Every "
-            "solver path (the stage-wise ones carry the input before each stage's own as a state)", low=0.0,
+            "the command in force (none yet: the safe input); the fallbacks' inputs follow the limits from it too. "
+            "Empty: off. Every solver path (the stage-wise ones carry the limited inputs before each stage's own as "
+            "states)", low=0.0,
         low_open=True, finite=False)
     feedback: bool = setting(
         False, "answer a sample from the plan prepared for it: a caller that calls prepare() after each command gets "

@@ -33,7 +33,7 @@ import numpy as np
 from ..config.settings import ControllerSettings
 from ..errors import InputError
 from ..nlp.buffered import Buffered
-from ..nlp.parts import depth_function, problem_parts
+from ..nlp.parts import command_index, depth_function, problem_parts
 from ..nlp.search import VIOLATION_TOLERANCE, depth_allowance
 from ..nlp.stop_at import StopAt
 from ..nlp.tracking import COLD_START_TIME_FACTOR, SEARCH_SHARE, NlpBase
@@ -147,6 +147,10 @@ class FallbackSelector:
         self._input_lo, self._input_hi = lo, hi
         #: the model's safe input [m] (NmpcController.set_safe_input); zero clipped to the input box
         self.safe_input = np.clip(np.zeros(m), lo, hi)
+        # input_rate_max: where par holds the command in force (rate_on right after it), the limited inputs, their
+        # largest change per sample
+        self._commanded = command_index(parts.par.numel(), parts.slot_par.numel(), m, bool(settings.input_rate_max))
+        self._rate_limited, self._rate_step = list(parts.rate_limited), np.array(parts.rate_step, float)
 
     def check_safe_input(self, u: Sequence[float]) -> np.ndarray:
         """u as a safe input [m], or InputError if malformed or outside the input box."""
@@ -165,6 +169,21 @@ class FallbackSelector:
         u = self.safe_input if u is None else u
         planned, judged = (float(v[0]) for v in self._initial_keep_in_depth(x, u, par))
         return depth_allowance(planned) if judged <= VIOLATION_TOLERANCE else VIOLATION_TOLERANCE
+
+    def followed(self, inputs: np.ndarray, par: np.ndarray) -> np.ndarray:
+        """inputs [H, m] as rate-limited actuators follow them from the command in force (in par): each input with
+        an input_rate_max moves towards its value by at most its rate step a sample. Unchanged without limits or
+        before the first command. A fallback that jumped (the safe input's wheels straight at once) left the next
+        warm start's first rate row violated, and the car's FATROP solve was abandoned sample after sample."""
+        if not self._rate_limited or par[self._commanded[-1] + 1] == 0:
+            return inputs
+        limited, step = self._rate_limited, self._rate_step
+        followed = np.array(inputs, float)
+        before = par[self._commanded][limited]
+        for k in range(len(followed)):
+            before = before + np.clip(followed[k, limited] - before, -step, step)
+            followed[k, limited] = before
+        return followed
 
     def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
         """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""
@@ -208,13 +227,14 @@ class FallbackSelector:
         if u_a is not None:
             sequences["steady"] = np.tile(u_a, (H, 1)) if np.ndim(u_a) == 1 else np.asarray(u_a, float)
         sequences["safe"] = np.tile(self.safe_input, (H, 1))
+        sequences = {kind: self.followed(seq, par) for kind, seq in sequences.items()}
         predicted = {kind: self.predict(x, seq, par) for kind, seq in sequences.items()}
         seconds = 0.0
         if recover and min(v for _, v in predicted.values()) > VIOLATION_TOLERANCE:
             best_start = min(sequences, key=lambda k: predicted[k][1])
             inputs, seconds = self.recover(x, par, sequences[best_start], end)
             if inputs is not None:
-                sequences["recovery"] = inputs
+                sequences["recovery"] = inputs = self.followed(inputs, par)
                 predicted["recovery"] = self.predict(x, inputs, par)
         least = max(VIOLATION_TOLERANCE, min(v for _, v in predicted.values()))
         kind = next(k for k in CANDIDATES if k in predicted and predicted[k][1] <= least)
