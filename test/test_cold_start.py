@@ -247,7 +247,7 @@ def test_the_car_starts_cold_from_its_own_model_driven_towards_the_goal():
         runs[rollout] = (first.label, result.iterations, first.cost)
     assert runs[True][0] == "rollout" and runs[False][0] == "rest"
     assert runs[True][1] <= runs[False][1] / 3
-    assert runs[True][2] <= runs[False][2]
+    assert runs[True][2] <= runs[False][2] * (1 + 1e-9)  # with the steering-rate limit both find the same plan
 
 
 def test_the_car_parks_at_its_goal_without_a_fallback():

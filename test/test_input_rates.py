@@ -57,10 +57,50 @@ def test_every_stage_wise_path_keeps_the_limits_and_follows_the_multiple_shootin
     the limit couples no two stages: the structure-exploiting paths plan it as IPOPT does."""
     limited = dict(input_rate_max=(1.0, float("inf")), codegen=False, ellipse_tiers=())
     x0, goal = [-8.0, -6.0, 0.0, 0.0], [8.0, 6.0]
-    runs = {name: run_closed_loop(NmpcController(ROBOT.replace(solver=name, **limited)), x0, goal, 25, "continuous")
-            for name in ("ipopt", solver)}
+    controllers = {name: NmpcController(ROBOT.replace(solver=name, **limited)) for name in ("ipopt", solver)}
+    layout = controllers[solver].nlp.layout  # only the limited input is carried: one state per stage, not m
+    assert layout.prev_index.shape == (ROBOT.horizon + 1, 1)
+    runs = {name: run_closed_loop(c, x0, goal, 25, "continuous") for name, c in controllers.items()}
     settings = ROBOT.replace(**limited)
     for run in runs.values():
         assert np.all(steps(run, settings)[1:, 0] <= settings.sample_time + 1e-6)  # 1 m/s^2 on the first input
         assert np.max(steps(run, settings)[1:, 1]) > settings.sample_time  # the second is not limited
     assert np.max(np.abs(runs[solver].x - runs["ipopt"].x)) < 1e-3  # the same plans
+
+
+BICYCLE = ControllerSettings.from_params(load_params_file(ROOT / "config" / "bicycle.yaml").section("controller"))
+
+
+def test_the_shipped_car_turns_its_steering_wheel_at_most_its_rate_and_parks():
+    """config/bicycle.yaml limits the steering rate (1.5 rad/s: 0.3 rad a sample), not the speed's change: the car
+    from rest facing its goal's side still reaches its goal pose, and no command steers further than that from the
+    one before, the first against the wheels straight."""
+    settings = BICYCLE.replace(codegen=False)
+    assert settings.input_rate_max == (float("inf"), 1.5)
+    run = run_closed_loop(NmpcController(settings), [-4.0, -3.0, 0.0], [3.0, 2.0, 0.0], 70, "continuous")
+    change = steps(run, settings)
+    assert np.all(change[:, 1] <= 1.5 * settings.sample_time + 1e-6)
+    assert np.max(change[:, 1]) > 0.29  # the limit is reached: it binds
+    assert np.max(change[:, 0]) > 0.3  # the speed is not limited
+    assert np.linalg.norm(run.x[-1][:2] - [3.0, 2.0]) < 0.1 and abs(run.x[-1][2]) < 0.1
+
+
+def test_a_fallback_slows_the_robot_within_its_limits_and_predicts_the_way_it_takes():
+    """The fallback's candidates go through the rate limits from the command in force (FallbackSelector.followed):
+    the safe input (stop) brakes at the limit and its prediction covers the braking distance. Before, the robot
+    was commanded to stop at once, a step the plan's next rate row then forbade its warm start to match."""
+    settings = UNICYCLE.replace(codegen=False)
+    controller = NmpcController(settings)
+    x, goal = np.array([0.0, 0.0, 0.0]), np.array([3.0, 0.0])
+    cruising = np.array([0.8, 0.0])
+    controller.memory.command = cruising
+    choice = controller.fallback.choose(x, controller.parameters(x, goal), None, None, False, recover=False)
+    assert choice.kind == "safe"
+    step = settings.input_rate_max[0] * settings.sample_time
+    braking = np.maximum(cruising[0] - step * np.arange(1, 6), 0.0)
+    assert np.allclose(choice.inputs[:5, 0], braking)  # 0.8 -> 0 at the limit, not at once
+    assert choice.states[-1][0] > 0.8 * settings.sample_time  # it rolls on while it brakes
+    unlimited = NmpcController(settings.replace(input_rate_max=()))
+    unlimited.memory.command = cruising
+    at_once = unlimited.fallback.choose(x, unlimited.parameters(x, goal), None, None, False, recover=False)
+    assert np.all(at_once.inputs == 0.0)

@@ -34,7 +34,9 @@ def bicycle_settings() -> ControllerSettings:
 
 @pytest.mark.slow
 def test_the_car_parked_beside_its_goal_backs_up_and_parks_at_it():
-    controller = NmpcController(bicycle_settings())
+    # the scene as found, before config/bicycle.yaml limited the steering rate: with the limit the car comes in
+    # on a wider arc and parks within the 0.05 m of its goal with no manoeuvre, so the scene would no longer test them
+    controller = NmpcController(bicycle_settings().replace(input_rate_max=()))
     spec = BICYCLE_0023
     run = run_closed_loop(controller, spec["x0"], spec["target"], spec["steps"], spec["plant"],
                           regions=static_schedule(spec))
