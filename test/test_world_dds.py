@@ -26,7 +26,7 @@ pytestmark = [pytest.mark.dds, pytest.mark.slow]
 GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's target
 REACH_WITHIN = 60.0  # s of real time (the room took 13-15 s here)
 #: m, each config's footprint_radius
-BODY = {"unicycle_world.yaml": 0.2}
+BODY = {"unicycle_world.yaml": 0.2, "bicycle_world.yaml": 0.25}
 
 
 def wall_distance(world_file: str, xy: np.ndarray) -> float:
@@ -39,9 +39,12 @@ def wall_distance(world_file: str, xy: np.ndarray) -> float:
 
 @pytest.mark.parametrize("world, walkers, config", [
     ("worlds/room.yaml", "worlds/room_walkers.yaml", "unicycle_world.yaml"),
-    ("worlds/pillars.yaml", "", "unicycle_world.yaml")], ids=["room", "pillars"])
-# config/bicycle_world.yaml (the car) is not here: in the room its body came 0.06-0.14 m into a wall in 3 of 7 runs
-# (each a full suite's; alone it kept 0.035-0.14 m clear), an open problem of issue 28 (docs/usage.md)
+    ("worlds/pillars.yaml", "", "unicycle_world.yaml"),
+    ("worlds/room.yaml", "worlds/room_walkers.yaml", "bicycle_world.yaml")], ids=["room", "pillars", "car-room"])
+# the car (config/bicycle_world.yaml): on 2026-12-03 its body came 0.06-0.14 m into a wall in 3 of 7 full-suite runs,
+# before its cold start began from its own model driven to the goal (core/sample/rollout.py: 13 ms, not 68 ms and
+# 0.4-1.45 s under load). Since: 0.351-0.382 m from a wall cell's centre in 7 of 7 runs, alone, beside two busy loops
+# and on an empty solver cache (docs/usage.md)
 def test_the_robots_reach_their_goal_in_the_shipped_worlds(ros_graph, monkeypatch, world, walkers, config):
     _, _, start, probe = ros_graph
     p = probe()
