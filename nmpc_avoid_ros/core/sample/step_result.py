@@ -163,8 +163,10 @@ def validate_vector(name: str, values: Sequence[float] | np.ndarray, size: int, 
         raise InputError(f"{name}: data is not a sequence of numbers") from None
     if arr.size != size:
         raise InputError(f"{name}: expected {size} values, got {arr.size}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name}: contains NaN or infinite values")
-    if np.any(np.abs(arr) > max_abs):
+    # one pass that also refuses NaN (no comparison holds) and inf; for a state's few entries a Python loop is
+    # ~10x cheaper than numpy's dispatch (every answered sample validates two or three vectors)
+    if not all(-max_abs <= v <= max_abs for v in arr.tolist()):
+        if not np.all(np.isfinite(arr)):
+            raise InputError(f"{name}: contains NaN or infinite values")
         raise InputError(f"{name}: values must be within +-{max_abs:g}, got {arr.tolist()}")
     return arr
