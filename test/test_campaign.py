@@ -14,7 +14,12 @@ from nmpc_avoid_ros.core.loop.metrics import SETTLING_TOLERANCE
 from nmpc_avoid_ros.core.problem.models import make_model
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.evaluation.campaign.cli import main
-from nmpc_avoid_ros.evaluation.campaign.reachability import ReachableSet, planar_passage, vdp_passage
+from nmpc_avoid_ros.evaluation.campaign.reachability import (
+    ReachableSet,
+    planar_passage,
+    trajectory_passage,
+    vdp_passage,
+)
 from nmpc_avoid_ros.evaluation.campaign.running import JSON_NAME, JSONL_NAME, read_jsonl
 from nmpc_avoid_ros.evaluation.campaign.scenarios import (
     bicycle_scenario,
@@ -171,6 +176,25 @@ def test_reachable_set_and_passages():
     live = load_settings(default_config_path().parent / "van_der_pol_live.yaml")
     assert not vdp_passage(np.array([0.0, 0.0]), np.array([2.0]), [gap], live)
     assert vdp_passage(np.array([0.0, 0.0]), np.array([2.0]), [], live)
+
+
+def test_a_van_der_pol_passage_is_a_trajectory_of_the_model_not_only_a_corridor():
+    """vdp-0020 (seed 0): the live config stopped at x = (3.917, 0) before an ellipse whose top leaves x2 in
+    [0.33, 0.43] free at x1 = 4.6. The corridor test finds free x2 in every slice, but holding x2 = 0.38 there needs
+    u = x1 - (1 - x1^2) x2 = 12 and the box gives 6: no trajectory of the model passes, so the controller rightly
+    stops (before, this counted as a local minimum). With the ellipse's top lowered by 0.4 a trajectory passes."""
+    live = load_settings(default_config_path().parent / "van_der_pol_live.yaml")
+    ellipse = Ellipse((4.618225838220651, -0.37700662955203246), (0.7753056644295777, 0.682822605889849),
+                      2.3553323118770844, "state").inflated(live.planning_margin)
+    stop, goal = np.array([3.91655462, 0.0]), np.array([5.94])
+    assert vdp_passage(stop, goal, [ellipse], live)
+    assert not trajectory_passage(stop, goal, [ellipse], live)
+    lowered = Ellipse((4.618225838220651, -0.77700662955203246), (0.7753056644295777, 0.682822605889849),
+                      2.3553323118770844, "state").inflated(live.planning_margin)
+    assert trajectory_passage(stop, goal, [lowered], live)
+    assert trajectory_passage(stop, goal, [], live)  # nothing in the way: at once
+    wall = Ellipse((5.0, 0.0), (0.2, 3.0), 0.0, "state")  # across every x2
+    assert not vdp_passage(stop, goal, [wall], live)  # the corridor test, necessary, closes it alone
 
 
 def _free_port() -> int:

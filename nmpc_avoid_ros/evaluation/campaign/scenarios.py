@@ -28,7 +28,7 @@ from ...core.loop.closed_loop import RegionSchedule
 from ...core.loop.metrics import keep_in_values
 from ...core.problem.models import Model
 from ...core.problem.regions import Ellipse, Region
-from .reachability import planar_passage, vdp_passage
+from .reachability import planar_passage, trajectory_passage, vdp_passage
 from .world import score_world, summarize_world, world_scenario
 
 #: an ellipse never contains the initial point: its depth there is below -START_MARGIN
@@ -71,6 +71,9 @@ class Family:
     #: its records -> its summary; None: scoring.score_scenario and summary.summarize
     score: Callable[..., dict[str, Any]] | None = None
     summarize: Callable[[Sequence[dict[str, Any]]], dict[str, Any]] | None = None
+    #: a necessary test that `passage` refines, recorded beside it (van der Pol: the geometric corridor, which the
+    #: passage also asks the model's dynamics to travel); None: `passage` alone
+    corridor: Passage | None = None
 
 
 def moving_schedule(spec: Mapping[str, Any]) -> RegionSchedule:
@@ -212,8 +215,10 @@ def _planar_way(x_end: np.ndarray, y_end: np.ndarray, y_goal: np.ndarray, region
 #: every family of the campaign, in the order they are listed and summarised
 FAMILIES: tuple[Family, ...] = (
     Family("vdp", 1, "van_der_pol.yaml", 500, 80, vdp_scenario,
-           lambda x_end, y_end, y_goal, regions, settings: vdp_passage(x_end, y_goal, regions, settings),
-           "van der Pol"),
+           lambda x_end, y_end, y_goal, regions, settings: vdp_passage(x_end, y_goal, regions, settings)
+           and trajectory_passage(x_end, y_goal, regions, settings),
+           "van der Pol",
+           corridor=lambda x_end, y_end, y_goal, regions, settings: vdp_passage(x_end, y_goal, regions, settings)),
     Family("robot", 2, "mobile_robot.yaml", 200, 140, robot_scenario, _planar_way, "mobile robot"),
     # not run unless asked for (--moving N): compare with --sweep predict_obstacles=true,false
     Family("moving", 3, "mobile_robot.yaml", 0, 100, moving_scenario, _planar_way,

@@ -9,7 +9,10 @@ Definitions (per scenario; y is the output, K the last sample; y* and y~ from re
 * stop short (paper Remark 1): at rest but not converged; the distance is |y_K - y*|. Cause
   'obstacle_covers_target' if it stopped at y~ != y* (the avoidance cost moves the equilibrium);
   otherwise it stopped short of y~ too, 'no_passage' when the regions leave no admissible way from
-  where it stopped to y~ (the family's passage test), else 'local_minimum'.
+  where it stopped to y~ (the family's passage test), else 'local_minimum'. van der Pol's passage is a
+  trajectory of the model itself, clear (reachability.trajectory_passage), through an open corridor of free
+  x2 in every x1 slice (`corridor_to_admissible`, reachability.vdp_passage, which alone was the test before
+  2026-12-05); the planar families' a connected free path of the plane.
 * penetration, clearance: core/loop/metrics.py (keep-in expressions and regions in force per sample).
 * solver failure: a sample whose solver status is not Solve_Succeeded/Solved_To_Acceptable_Level
   (budget cuts with a feasible iterate count here, as 'truncated'); fallback: a sample that applied
@@ -178,7 +181,7 @@ def outcome_section(s: Scored) -> dict[str, Any]:
     at_rest = motion < REST_TOLERANCE
     settle = settling_step(err_best, 0.0, SETTLING_TOLERANCE)
     stop_short = bool(at_rest and settle is None)
-    cause, passage = None, None
+    cause, passage, corridor = None, None, None
     if stop_short:
         if blocked_target and bool(err_free[-1] < SETTLING_TOLERANCE):
             cause = "obstacle_covers_target"
@@ -188,6 +191,8 @@ def outcome_section(s: Scored) -> dict[str, Any]:
             margin = s.settings.planning_margin
             planned = [r.inflated(margin) for r in s.regions] if margin else s.regions
             passage = bool(free_ok and s.family.passage(run.x[-1], y[-1], s.y_free, planned, s.settings))
+            if s.family.corridor is not None:
+                corridor = bool(free_ok and s.family.corridor(run.x[-1], y[-1], s.y_free, planned, s.settings))
             cause = "local_minimum" if passage else "no_passage"
     return {
         "n_ellipses": len(s.spec["ellipses"]), "stopped_early": run.stopped,
@@ -200,7 +205,7 @@ def outcome_section(s: Scored) -> dict[str, Any]:
         "settling_step": settle,
         "stop_short": stop_short, "stop_short_distance": float(err_best[-1]) if stop_short else None,
         "stop_short_beyond_admissible": float(err_free[-1]) if stop_short else None, "stop_short_cause": cause,
-        "passage_to_admissible": passage,
+        "passage_to_admissible": passage, "corridor_to_admissible": corridor,
         "final_avoidance_cost": float(run.costs[-1, 1]), "final_offset_cost": float(run.costs[-1, 0]),
     }
 

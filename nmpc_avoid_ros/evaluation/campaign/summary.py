@@ -122,6 +122,9 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "recursive_feasibility_pairs": int(pairs),
         "stop_short": len(short),
         "stop_short_causes": causes,
+        # no passage although the corridor test alone finds one (van der Pol: the dynamics cannot travel it)
+        "no_passage_corridor_open": sum(r["stop_short_cause"] == "no_passage" and bool(r.get("corridor_to_admissible"))
+                                        for r in short),
         "stop_short_distance": _stats([r["stop_short_distance"] for r in short]),
         "stop_short_beyond_admissible": _stats([r["stop_short_beyond_admissible"] for r in short
                                                 if r["stop_short_beyond_admissible"] is not None
@@ -167,7 +170,9 @@ DEFINITIONS = {
     "converged": f"|y - y*| < {SETTLING_TOLERANCE:g} from some sample on, to the end",
     "near": f"|y_K - y*| < {NEAR_TOLERANCE:g} (y* = y_t for a reachable target)",
     "stop_short": "at rest but not converged; distance |y_K - y*|; cause obstacle_covers_target (stopped at y~ != y*), "
-                  "no_passage (no admissible way to y~ exists) or local_minimum (one exists)",
+                  "no_passage (no admissible way to y~ exists) or local_minimum (one exists); van der Pol's way is a "
+                  "clear trajectory of the model through a corridor of free x2 (corridor_to_admissible: the corridor "
+                  "alone, the test before 2026-12-05)",
     "penetration": "max over sampled states of g (keep-in: expression value, e.g. |x1 x2|-2; ellipse: 1 - r^2), 0 "
                    "if never inside; a moving ellipse is taken where it is at each sample's time",
     "collision_rate": "share of runs whose penetration into an obstacle (keep-in expressions left out) exceeds 1e-3",
@@ -237,7 +242,8 @@ def format_summary(summary: dict[str, Any]) -> str:
             f"recursive feasibility {pct(s['recursive_feasibility_rate'])}",
             f"  first solve failed {s['first_solve_failed']} (x0 in X_N: {s['first_solve_failed_x0_feasible']}; "
             f"x0 outside X_N {s['x0_infeasible']}, unknown {s['x0_feasibility_unknown']})",
-            f"  stop short {s['stop_short']} {s['stop_short_causes']} distance median "
+            f"  stop short {s['stop_short']} {s['stop_short_causes']} (no passage with an open corridor "
+            f"{s['no_passage_corridor_open']}) distance median "
             f"{_fmt(ss['median'])} max {_fmt(ss['max'])}; solve max {s['solve_ms_max']:.0f} ms",
             f"  penetration after the first step {_fmt(s['penetration_after_first_step'])} (x0 in X_N; all runs "
             f"{_fmt(s['penetration_after_first_step_all_runs'])}; regions avoidable from x0 "
