@@ -20,6 +20,8 @@ from nmpc_avoid_ros.tools.processes import NodeProcess, isolated_env  # noqa: F4
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "van_der_pol.yaml"
+#: s between repeats of heard_by's request (Probe.heard_by)
+REQUEST_RETRY = 2.0
 
 
 def ros_env(domain_id: int, log_dir: Path) -> dict[str, str]:
@@ -65,13 +67,20 @@ class Probe:
         asymmetric: our reader seeing a node's writer does not mean that writer sees our reader, so a
         volatile message (a diagnostic) can be lost. A node answers only after it discovered our
         response reader, announced after every reader created before this call on the same ordered,
-        reliable discovery channel: its writers then match all those readers too."""
+        reliable discovery channel: its writers then match all those readers too. The answer itself can
+        still be dropped: rmw_fastrtps gives up on a response whose reader it has not matched in time
+        ("failed to send response (timeout)", seen once in a CI-like run), so the request is repeated
+        every REQUEST_RETRY s until one is answered."""
         client = self.node.create_client(GetParameters, f"/{node_name}/get_parameters")
+        end = time.monotonic() + timeout
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 return False
-            future = client.call_async(GetParameters.Request(names=[]))
-            return self.spin_until(future.done, timeout)
+            while time.monotonic() < end:
+                future = client.call_async(GetParameters.Request(names=[]))
+                if self.spin_until(future.done, min(REQUEST_RETRY, max(0.0, end - time.monotonic()))):
+                    return True
+            return False
         finally:
             self.node.destroy_client(client)
 
