@@ -105,17 +105,25 @@ def region_depth(region: Region, points: np.ndarray) -> np.ndarray:
     return np.array([region.depth(pt) for pt in points.T])
 
 
-def keep_in_values(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
-                   expressions: Sequence[str] | None = None) -> np.ndarray:
-    """g of each keep-in expression at each state [len(x), q] (> 0: outside the keep-in set);
-    `expressions`: other inequalities of the same form instead (e.g. settings.constraints, the hard ones)."""
+def keep_in_function(settings: ControllerSettings, model: Model,
+                     expressions: Sequence[str] | None = None) -> ca.Function | None:
+    """(x [n], u [m]) -> g of each keep-in expression [q] (> 0: outside the keep-in set), parsed once; None without
+    any. `expressions`: other inequalities of the same form instead (e.g. settings.constraints, the hard ones)."""
     xsym, usym = ca.SX.sym("x", model.n), ca.SX.sym("u", model.m)
     table = model.symbol_table(xsym, usym)
     keep = [parse_keep_in(text, table).g for text in (settings.keep_in if expressions is None else expressions)]
-    if not keep:
+    return ca.Function("keep_in", [xsym, usym], [ca.vertcat(*keep)]) if keep else None
+
+
+def keep_in_values(settings: ControllerSettings, model: Model, x: np.ndarray, u: np.ndarray,
+                   expressions: Sequence[str] | None = None) -> np.ndarray:
+    """g of each keep-in expression at each state [len(x), q] (> 0: outside the keep-in set);
+    `expressions`: as in keep_in_function."""
+    fn = keep_in_function(settings, model, expressions)
+    if fn is None:
         return np.zeros((len(x), 0))
-    fn = ca.Function("keep_in", [xsym, usym], [ca.vertcat(*keep)]).map(len(x))
-    return np.asarray(fn(np.asarray(x, float).T, padded_inputs(x, u).T), float).T.reshape(len(x), len(keep))
+    q = fn.size1_out(0)
+    return np.asarray(fn.map(len(x))(np.asarray(x, float).T, padded_inputs(x, u).T), float).T.reshape(len(x), q)
 
 
 def region_values(settings: ControllerSettings, x: np.ndarray, y: np.ndarray,

@@ -19,7 +19,7 @@ import numpy as np
 
 from ...core.config.settings import ControllerSettings
 from ...core.errors import ConfigError
-from ...core.loop.metrics import keep_in_values, region_depth
+from ...core.loop.metrics import keep_in_function, keep_in_values, region_depth
 from ...core.nlp.projection import TargetProjection
 from ...core.problem.expressions import parse_keep_in
 from ...core.problem.models import Model
@@ -168,16 +168,17 @@ def vdp_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region]
 #: the trajectory search of `trajectory_passage`: inputs held this long (s), checked at this many RK4 sub-steps,
 #: this many input levels across the input box, one state kept per cell of this size (state units), searched over
 #: this much plant time (s)
-SEARCH_INTERVAL, SEARCH_SUBSTEPS, SEARCH_LEVELS, SEARCH_CELL, SEARCH_TIME, = 0.1, 2, 25, 0.01, 40.0
+SEARCH_INTERVAL, SEARCH_SUBSTEPS, SEARCH_LEVELS, SEARCH_CELL, SEARCH_TIME = 0.1, 2, 25, 0.01, 40.0
 #: depth (region and keep-in g) a searched trajectory may reach: where the controller judges a plan clear
 SEARCH_DEPTH = 1e-3
 
 
 def trajectory_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[Region],
                        settings: ControllerSettings) -> bool:
-    """Is there a trajectory of the model from x_end to the steady state of y_goal that stays clear of the regions
-    (as given: pass them inflated by the planning margin) and inside the keep-in sets with keep_in_margin, under
-    inputs in the box? A search over inputs held SEARCH_INTERVAL s (SEARCH_LEVELS levels per input), every RK4
+    """Is there a trajectory of the model from x_end past (in x1, towards y_goal) every region in the x1 span between,
+    clear of the regions (as given: pass them inflated by the planning margin) and inside the keep-in sets with
+    keep_in_margin, under inputs in the box? From there nothing blocks the way to y_goal's steady state. A search
+    over inputs held SEARCH_INTERVAL s (SEARCH_LEVELS levels per input), every RK4
     sub-step state checked, keeping the first state that reaches each SEARCH_CELL cell of the state space. A way
     it finds is a real trajectory of the model; one it misses may exist (a corridor a few cells wide, or one that
     needs a finer input). For models of two states (van der Pol): the cells span the whole state.
@@ -191,9 +192,8 @@ def trajectory_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[
     path = model.discrete_path(SEARCH_INTERVAL, "rk4", SEARCH_SUBSTEPS)
     lo, hi = np.array(settings.input_min, float), np.array(settings.input_max, float)
     levels = np.array(np.meshgrid(*[np.linspace(a, b, SEARCH_LEVELS) for a, b in zip(lo, hi)])).reshape(model.m, -1)
-    # the goal: past (in x1, towards y_goal) every region that reaches into the x1 span between, clear; from there
-    # nothing blocks the way to y_goal's steady state (near the input bound its last approach is slow: 45 s from
-    # x1 = 5.5 to 5.89 at u <= 6, which is not the question here)
+    # the goal is past the regions, not y_goal's steady state itself: near the input bound its last approach is
+    # slow (45 s from x1 = 5.5 to 5.89 at u <= 6), which is not the question here
     start, end = float(np.asarray(x_end, float)[0]), float(np.asarray(y_goal, float)[0])
     sign = 1.0 if end >= start else -1.0
     beyond = start
@@ -205,10 +205,7 @@ def trajectory_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[
     if sign * (beyond - start) <= 0:
         return True
     x_lo, x_hi = np.array(settings.state_min, float), np.array(settings.state_max, float)
-    xs, us = ca.SX.sym("x", 2), ca.SX.sym("u", model.m)
-    table = model.symbol_table(xs, us)
-    keep = [parse_keep_in(text, table).g for text in settings.keep_in]
-    keep_g = ca.Function("keep", [xs, us], [ca.vertcat(*keep, -1)])  # -1: a row that always holds
+    keep_g = keep_in_function(settings, model)
     plane = list(settings.plane)
     frontier = np.asarray(x_end, float).reshape(2, 1)
     seen = {tuple(np.floor(frontier[:, 0] / SEARCH_CELL).astype(int))}
@@ -217,14 +214,14 @@ def trajectory_passage(x_end: np.ndarray, y_goal: np.ndarray, regions: Sequence[
             return False
         starts = np.repeat(frontier, levels.shape[1], axis=1)
         inputs = np.tile(levels, frontier.shape[1])
-        points = np.asarray(path.map(starts.shape[1])(starts, np.repeat(inputs, 1, axis=1))).reshape(2, -1,
-                                                                                                        SEARCH_SUBSTEPS)
+        points = np.asarray(path.map(starts.shape[1])(starts, inputs)).reshape(2, -1, SEARCH_SUBSTEPS)
         flat = points.transpose(0, 2, 1).reshape(2, -1)  # every sub-step state, [2, steps * K] by sub-step
         ok = np.all(np.isfinite(flat), axis=0) & np.all((flat >= x_lo[:, None]) & (flat <= x_hi[:, None]), axis=0)
         for region in regions:
             ok &= region_depth(region, flat[plane]) <= SEARCH_DEPTH
-        g = np.asarray(keep_g.map(flat.shape[1])(flat, np.repeat(inputs, SEARCH_SUBSTEPS, axis=1)))
-        ok &= np.all(g + settings.keep_in_margin <= SEARCH_DEPTH, axis=0)
+        if keep_g is not None:  # the inputs in flat's order: each sub-step's K columns in turn
+            g = np.asarray(keep_g.map(flat.shape[1])(flat, np.tile(inputs, SEARCH_SUBSTEPS)))
+            ok &= np.all(g + settings.keep_in_margin <= SEARCH_DEPTH, axis=0)
         clear = ok.reshape(SEARCH_SUBSTEPS, -1).all(axis=0)
         ends = points[:, :, -1][:, clear]
         if ends.size and np.any(sign * (ends[0] - beyond) >= 0):

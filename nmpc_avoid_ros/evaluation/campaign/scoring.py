@@ -190,9 +190,10 @@ def outcome_section(s: Scored) -> dict[str, Any]:
             # the keep-in with keep_in_margin): a way open only without the margins is no way for this controller
             margin = s.settings.planning_margin
             planned = [r.inflated(margin) for r in s.regions] if margin else s.regions
-            passage = bool(free_ok and s.family.passage(run.x[-1], y[-1], s.y_free, planned, s.settings))
             if s.family.corridor is not None:
                 corridor = bool(free_ok and s.family.corridor(run.x[-1], y[-1], s.y_free, planned, s.settings))
+            passage = bool(free_ok and corridor is not False
+                           and s.family.passage(run.x[-1], y[-1], s.y_free, planned, s.settings))
             cause = "local_minimum" if passage else "no_passage"
     return {
         "n_ellipses": len(s.spec["ellipses"]), "stopped_early": run.stopped,
