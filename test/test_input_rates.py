@@ -12,6 +12,7 @@ import pytest
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 from nmpc_avoid_ros.core.sample.status import FeedbackOutcome
 
@@ -104,3 +105,28 @@ def test_a_fallback_slows_the_robot_within_its_limits_and_predicts_the_way_it_ta
     unlimited.memory.command = cruising
     at_once = unlimited.fallback.choose(x, unlimited.parameters(x, goal), None, None, False, recover=False)
     assert np.all(at_once.inputs == 0.0)
+
+
+def test_a_steady_fallback_applies_the_input_it_was_judged_by_not_the_plans_next_one():
+    """When the shifted plan would drive into a region and holding u_a (a stop) would not, the `steady` fallback's
+    command is the stop as the actuators follow it, and its prediction is that stop's. Before, the result took the
+    plan's next input (the `shift` candidate's): campaign bicycle_world-0027 drove on at full speed, judged 0.87
+    deep, with `fallback_steady` in its diagnostics."""
+    settings = UNICYCLE.replace(codegen=False)
+    controller = NmpcController(settings)
+    x, goal = np.array([0.0, 0.0, 0.0]), np.array([4.0, 0.0])
+    for _ in range(6):  # under way towards the goal
+        result = controller.step(x, goal)
+        x = result.states[1]
+    plan = controller.memory.plan
+    assert result.u[0] > 0.3 and plan.u_a[0] == pytest.approx(0.0, abs=1e-6)
+    # a wall across the plan's way, 1.2 m ahead: braking stops short of it, driving on the plan does not
+    wall = Ellipse((x[0] + 1.2, 0.0), (0.3, 2.0))
+    controller.worker.interrupt()  # every solver call fails: the fallback answers
+    fallback = controller.step(x + 0.0, goal, [wall])
+    assert fallback.status == "fallback_steady", fallback.fallback_reason
+    assert fallback.fallback_predicted["shift"] > 0.0 and fallback.fallback_predicted["steady"] == 0.0
+    step = np.asarray(settings.input_rate_max) * settings.sample_time
+    assert fallback.u[0] == pytest.approx(max(result.u[0] - step[0], 0.0))  # braking at the limit
+    predicted = controller.fallback.predict(x, fallback.inputs, controller.parameters(x, goal))[0]
+    np.testing.assert_allclose(fallback.states, predicted, atol=1e-9)

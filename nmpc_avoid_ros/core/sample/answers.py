@@ -111,9 +111,13 @@ class SampleAnswers:
         choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and age < N, sample.in_domain,
                                       sample.end)
         sample.seconds += choice.solve_time
-        if plan is not None and (choice.kind == "shift" or (choice.kind == "steady" and local is None)):
+        if plan is not None and choice.kind in ("shift", "steady"):
             result = self._result(plan, x, age, StepStatus(f"fallback_{choice.kind}"), status, iterations,
                                   budget_cut)
+            # what is applied is the candidate as judged: rate-limited actuators following it, and `steady` holding
+            # u_a (the plan's own next input here was the `shift` candidate's: campaign bicycle_world-0027 drove on
+            # at full speed with it, judged 0.87 deep, where holding u_a, a stop, was clear)
+            result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
         else:
             nan_p = np.full(self.model.p, np.nan) if plan is None else plan.y_a.copy()
             nan_n = np.full(self.model.n, np.nan) if plan is None else plan.x_a.copy()
