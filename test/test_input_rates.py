@@ -130,3 +130,8 @@ def test_a_steady_fallback_applies_the_input_it_was_judged_by_not_the_plans_next
     assert fallback.u[0] == pytest.approx(max(result.u[0] - step[0], 0.0))  # braking at the limit
     predicted = controller.fallback.predict(x, fallback.inputs, controller.parameters(x, goal))[0]
     np.testing.assert_allclose(fallback.states, predicted, atol=1e-9)
+    # the next sample starts from the stop applied, not from the plan that drove into the wall
+    follow = controller.memory.plan
+    assert follow.age == 0 and np.array_equal(follow.inputs, fallback.inputs)
+    assert np.array_equal(follow.states, fallback.states) and follow.u_a[0] == 0.0
+    np.testing.assert_allclose(follow.x_a[:2], fallback.states[-1][:2])

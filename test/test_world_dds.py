@@ -41,10 +41,9 @@ def wall_distance(world_file: str, xy: np.ndarray) -> float:
     ("worlds/room.yaml", "worlds/room_walkers.yaml", "unicycle_world.yaml"),
     ("worlds/pillars.yaml", "", "unicycle_world.yaml"),
     ("worlds/room.yaml", "worlds/room_walkers.yaml", "bicycle_world.yaml")], ids=["room", "pillars", "car-room"])
-# the car (config/bicycle_world.yaml): on 2026-12-03 its body came 0.06-0.14 m into a wall in 3 of 7 full-suite runs,
-# before its cold start began from its own model driven to the goal (core/sample/rollout.py: 13 ms, not 68 ms and
-# 0.4-1.45 s under load). Since: 0.351-0.382 m from a wall cell's centre in 7 of 7 runs, alone, beside two busy loops
-# and on an empty solver cache (docs/usage.md)
+# the car (config/bicycle_world.yaml, its steering at most 1.5 rad/s): 0.338-0.385 m from a wall cell's centre in 12
+# of 12 runs, alone, beside two busy loops and on an empty solver cache (docs/campaign/bicycle_world/README.md). With
+# the limit and before a fallback applied the input it was judged by, 3 of 7 runs came into a wall
 def test_the_robots_reach_their_goal_in_the_shipped_worlds(ros_graph, monkeypatch, world, walkers, config):
     _, _, start, probe = ros_graph
     p = probe()

@@ -11,9 +11,11 @@ import numpy as np
 from ..nlp.search import Candidate, SearchReport
 from ..nlp.terminal import ShiftedTail
 from ..nlp.tiers import TieredNlp
-from .memory import COUNTED, RESET, Sample
+from .fallback import FallbackChoice
+from .memory import COUNTED, RESET, Carry, Sample
 from .status import StepStatus
 from .step_result import Plan, StepResult
+from .warm_start import steady_of
 
 #: solver status of a sample whose state lies outside the solve domain (no solver was called)
 OUTSIDE_SOLVE_DOMAIN = "outside_solve_domain"
@@ -80,6 +82,7 @@ class SampleAnswers:
             sample.carry.overrides = "" if choice.unavoidable else COUNTED
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
+            self._follow(sample.carry, choice)
         return result
 
     def _given_parameters(self, sample: Sample) -> np.ndarray:
@@ -128,7 +131,27 @@ class SampleAnswers:
         result.fallback_reason, result.fallback_predicted = choice.reason, dict(choice.predicted)
         result.predicted_violation = choice.violation
         result.horizon = 0 if last is None else last.nlp.layout.horizon
+        # the plan used up, `steady` is its own continuation (u_a held): it ages on as the paper's candidate
+        if plan is not None and choice.kind != "shift" and (choice.kind != "steady" or age < N):
+            self._follow(carry, choice)
         return result
+
+    def _follow(self, carry: Carry, choice: FallbackChoice) -> None:
+        """The next sample warm-starts from the fallback applied instead of the plan it replaced: its inputs [H, m]
+        and predicted states as the plan, resting at the steady state of its last output (the terminal rows are
+        the solver's to meet). The plan replaced predicted penetration, or led to a failed solve, and was
+        inconsistent with the command applied (a rate row forbade its u(0)): its warm starts failed sample after
+        sample (campaign bicycle_world-0027: five FATROP solves abandoned at the deadline, each followed by a
+        re-seed through the cold-start solvers). Not in the passage mode (the long plan has its own horizon)."""
+        if carry.passage or len(choice.inputs) != self.nlp.layout.horizon:
+            return
+        active = self._active(carry)
+        last = choice.states[-1]
+        x_a, u_a = steady_of(self.model, np.asarray(self.model.output(last, choice.inputs[-1]), float).ravel(), last)
+        y_a = np.asarray(self.model.output(x_a, u_a), float).ravel()
+        carry.plan = self._continued(Plan(choice.inputs.copy(), choice.states.copy(), y_a, x_a, u_a,
+                                          np.zeros(active.layout.n_w), np.zeros(active.lbg.size)))
+        carry.aged = False  # the plan applied now: the next warm start shifts it by one sample
 
     @functools.cached_property
     def _tail(self) -> ShiftedTail:
