@@ -175,7 +175,7 @@ def test_a_squeeze_between_an_ellipse_and_the_keep_in_stays_within_the_goal():
 
 
 def test_a_start_tries_no_further_guess_once_the_sample_budget_is_spent():
-    settings = shipped("vdp").replace(max_solve_time=1e-3)
+    settings = shipped("vdp").replace(max_solve_time=3e-4)
     controller = NmpcController(settings)
     controller.set_regions(VDP_ELLIPSES)
     x, y_t = np.array(PAPER_X0, float), np.array(PAPER_TARGET, float)

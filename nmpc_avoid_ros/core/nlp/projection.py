@@ -65,6 +65,15 @@ class TargetProjection:
         # the origin's steady state lies in lambda Z (Z contains the origin): a feasible first guess
         self._start = np.clip(np.zeros(n + m), self._lbx, self._ubx)
         self._last: tuple[tuple[float, ...], np.ndarray] | None = None
+        # y_t in reach by its closed-form steady state (g_x, g_u in lambda Z, the hard constraints held): y* = y_t
+        # without the solve (3.3 ms of the car's first sample; the solve answers y_t itself there too)
+        self._in_reach: ca.Function | None = None
+        if model.steady_state is not None:
+            x_s, u_s = model.steady_state(y_t)
+            z_s = ca.vertcat(x_s, u_s)
+            excess = ca.vertcat(ca.DM(self._lbx) - z_s, z_s - ca.DM(self._ubx), problem_parts(settings, model).hard_g(
+                x_s / lam, u_s / lam))
+            self._in_reach = ca.Function("projection_in_reach", [y_t], [ca.mmax(excess)])
 
     def __call__(self, y_t: Sequence[float], end: float = math.inf) -> np.ndarray:
         """y* [p] for the target y_t [p] (a copy; y_t itself where the projection fails). The solve ends by
@@ -74,6 +83,9 @@ class TargetProjection:
         key = tuple(y_t.tolist())
         if self._last is not None and self._last[0] == key:
             return self._last[1].copy()
+        if self._in_reach is not None and float(self._in_reach(y_t)) <= 0.0:
+            self._last = (key, y_t.copy())
+            return y_t.copy()
         self._stop_at.end = end
         sol = self._solver(x0=self._start, p=y_t, lbx=self._lbx, ubx=self._ubx, lbg=self._lbg, ubg=self._ubg)
         z = np.asarray(sol["x"]).ravel()

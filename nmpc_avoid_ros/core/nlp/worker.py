@@ -110,6 +110,11 @@ class SolveWorker:
         self.deadline = math.inf
         weakref.finalize(self, _release, self._child, self._wakeup)  # the child never outlives its worker
 
+    def start(self) -> None:
+        """Fork the child now rather than at the first call (a fork costs ~5 ms, which a first sample then spares)."""
+        with self._lock:
+            self._ensure_child()
+
     @property
     def interrupted(self) -> bool:
         """`interrupt()` was called and `resume()` not since: every call answers ABANDONED at once."""
