@@ -91,7 +91,8 @@ class SampleAnswers:
 
     def _fall_back(self, sample: Sample, last: Candidate | None) -> StepResult:
         """No usable plan: the candidate input predicting the least violation (core/sample/fallback.py); the plan
-        ages by one. A budget-cut iterate of the regular NLP is continued next sample; a fast path whose
+        ages by one (`shift`, or `steady` once it is used up), else the candidate becomes the plan (`_follow`). A
+        budget-cut iterate of the regular NLP is continued next sample; a fast path whose
         warm solve failed outright re-seeds through the cold-start starts."""
         carry, x, par = sample.carry, sample.x, sample.par
         if last is not None:
