@@ -307,3 +307,20 @@ def test_a_clear_plan_beats_a_cheaper_penetrating_base():
     base = solved("shifted", nlp, np.zeros(nlp.layout.n_w), -1.0, 0.5)
     best, tried, _ = escape(nlp, x, par, base, [rest], 1.0)
     assert best is not base and best.label == "rest" and best.depth <= 1e-3 and best.cost > base.cost, tried
+
+
+
+def test_an_escape_plan_clear_within_the_tolerance_is_not_refused_for_a_hair_more_depth_than_the_stall():
+    """The escape refuses a plan that buys progress with penetration: more depth than the stalled base's + 1e-4. A
+    plan clear by the search's own tolerance (1e-3 into the regions as inflated by their margins) buys none. Live
+    campaign vdp-0188: the guess over an upright ellipse (depth 3.5e-4, cost 7.0e5 against 9.0e5) was refused
+    against the stall's 1.5e-4 in every escape, and the loop rested 9.5 short of y~ = 5.94; admitted, it passes."""
+    nlp = NmpcController(ControllerSettings()).nlp
+    w = np.zeros(nlp.layout.n_w)
+    admit = escape_admission(solved("shifted", nlp, w, 9.0e5, 1.5e-4))
+    assert admit(solved("beyond0_left_of_region0", nlp, w, 7.0e5, 3.5e-4)) == ""
+    assert admit(solved("beyond0", nlp, w, 7.5e5, 1.19e-2)) == "penetrates more"  # the same stall's deep guess
+    # a base that penetrates itself (an escape from a penetrating plan): deeper is refused, shallower admitted
+    deep = escape_admission(solved("shifted", nlp, w, 9.0e5, 0.2))
+    assert deep(solved("around", nlp, w, 1.0e5, 0.25)) == "penetrates more"
+    assert deep(solved("around", nlp, w, 1.0e5, 0.15)) == ""

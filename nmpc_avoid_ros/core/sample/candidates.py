@@ -388,7 +388,7 @@ def escape_admission(base: Candidate) -> Callable[[Candidate], str]:
     y_base = base.nlp.layout.y_a(base.w)
 
     def admit(candidate: Candidate) -> str:
-        if candidate.depth > base.depth + DEPTH_ALLOWANCE:
+        if candidate.depth > base.depth + DEPTH_ALLOWANCE and not candidate.clear:
             return "penetrates more"
         moved = np.max(np.abs(candidate.nlp.layout.y_a(candidate.w) - y_base)) >= STALL_TOLERANCE
         return "" if moved or not candidate.label.startswith(MANOEUVRE) else "back at the rest"
