@@ -133,3 +133,20 @@ def test_the_target_projection_ends_by_the_samples_deadline_and_is_solved_again_
     cut = projection([8.0], end=begin)  # out of reach (|x1| <= 0.99 * 6), no time: the target itself
     assert cut.tolist() == [8.0] and time.perf_counter() - begin < 0.02
     assert projection([8.0])[0] == pytest.approx(5.94, abs=1e-6)  # solved again, with time
+
+
+def test_a_re_seed_under_a_moving_command_has_the_warm_budget_and_one_from_the_safe_input_the_cold_one():
+    """The cold start's 10x budget is for a plant resting on the safe input (no command yet, or a fallback's stop):
+    a re-seed while another command is in force has max_solve_time, since the plant follows that command for as
+    long as the sample lasts (the car's room: 1.1-1.4 s samples on re-seeds, docs/campaign/bicycle_world)."""
+    settings = ControllerSettings(solver="fatrop")
+    controller = NmpcController(settings)
+    cold = settings.max_solve_time * 10
+    assert controller.sample_budget() == pytest.approx(cold)  # the first start
+    controller.step([-5.0, 0.0], [5.0])
+    assert controller.sample_budget() == pytest.approx(settings.max_solve_time)  # warm
+    controller.memory.reseed = True  # a failed warm solve: the next sample re-seeds
+    assert controller.memory.command[0] != 0.0
+    assert controller.sample_budget() == pytest.approx(settings.max_solve_time)
+    controller.memory.command = controller.fallback.safe_input.copy()  # a fallback stopped it
+    assert controller.sample_budget() == pytest.approx(cold)

@@ -382,9 +382,11 @@ DEPTH_ALLOWANCE = 1e-4
 
 def escape_admission(base: Candidate) -> Callable[[Candidate], str]:
     """The escape's admission rule for `search`: a candidate may not buy progress with penetration (no
-    more predicted depth than the base plan's + DEPTH_ALLOWANCE); a manoeuvre must move y_a (by at least
-    STALL_TOLERANCE): one that came back to the base's rest is the base again, and kept on a cost lower by
-    rounding it ended the escape without its wait, so that it ran again every sample (measured in the campaign)."""
+    more predicted depth than the base plan's + DEPTH_ALLOWANCE, unless it is clear by the sample's tolerance:
+    campaign vdp-0188 rested for good before a guess 3.5e-4 deep was admitted against a stall 1.5e-4 deep); a
+    manoeuvre must move y_a (by at least STALL_TOLERANCE): one that came back to the base's rest is the base again,
+    and kept on a cost lower by rounding it ended the escape without its wait, so that it ran again every sample
+    (measured in the campaign)."""
     y_base = base.nlp.layout.y_a(base.w)
 
     def admit(candidate: Candidate) -> str:

@@ -172,10 +172,11 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         return bool(np.all((x >= low) & (x <= high)))
 
     def sample_budget(self) -> float:
-        """The next step's time bound, s: max_solve_time, or for a cold start (no plan yet, or a re-seed
-        through the cold-start solvers) COLD_START_TIME_FACTOR times it. The search's solver calls end by
-        SEARCH_SHARE of it (core/nlp/worker.py), the fallback's recovery solve within the rest."""
-        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if self._cold(self.memory) else 1.0)
+        """The next step's time bound, s: max_solve_time, x COLD_START_TIME_FACTOR for a cold start from the safe input
+        (none yet, or a fallback's), not under another command (the plant follows it); calls end by SEARCH_SHARE."""
+        mem = self.memory
+        first = self._cold(mem) and (mem.command is None or np.array_equal(mem.command, self.fallback.safe_input))
+        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if first else 1.0)
 
     def reset(self) -> None:
         """Forget everything carried between samples (the next step starts cold)."""

@@ -91,10 +91,12 @@ class SearchPhases:
         if self.tiered.tier is not None and carry.plan is None and self.escape.available:
             starts = [guess_start(self.tiered, x, sample.par, guess, budget=budget, cold=True)
                       for guess in self.cold_guesses(x, y_t)]
-        # SQP paths try a cold start themselves (cheap, and it works on small problems); FATROP fails
-        # slowly there (hundreds of ms): the reference solves it
-        if s.solver.startswith("sqp"):
-            starts.append(self._start("straight" if carry.plan is None else "shifted", self.nlp, sample, budget, True))
+        # SQP paths try a first start themselves (cheap, and it works on small problems); FATROP fails slowly there
+        # (hundreds of ms): the reference solves it. A re-seed goes to the reference at once: its warm start is the
+        # shifted plan that just failed, and with a command in force its budget is the warm one (`sample_budget`),
+        # which a second try from that plan used up (the robot's SQP path: every re-seed abandoned at 160 ms)
+        if s.solver.startswith("sqp") and carry.plan is None:
+            starts.append(self._start("straight", self.nlp, sample, budget, True))
         # a fast path's cold start gets its real-time budget, not the cold one, so that the reference always has
         # its turn: FATROP did not return from some starts of a car-like robot at rest (campaign bicycle-0024:
         # every sample's 1.2 s went to it, the car never moved; IPOPT solved the same sample in 14 iterations)
