@@ -43,7 +43,8 @@ class TargetProjection:
     def __init__(self, settings: ControllerSettings, model: Model) -> None:
         n, m, lam = model.n, model.m, settings.steady_state_scale
         x, u, y_t = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("y_t", model.p)
-        hard = problem_parts(settings, model).hard_g(x / lam, u / lam)
+        hard_g = problem_parts(settings, model).hard_g
+        hard = hard_g(x / lam, u / lam)
         rest = model.equilibrium(x, u)  # rows of full rank at rest (the unicycle's dynamics lose rank there)
         g = ca.vertcat(rest, hard)
         self._output = ca.Function("projection_output", [x, u], [model.output(x, u)])
@@ -71,8 +72,7 @@ class TargetProjection:
         if model.steady_state is not None:
             x_s, u_s = model.steady_state(y_t)
             z_s = ca.vertcat(x_s, u_s)
-            excess = ca.vertcat(ca.DM(self._lbx) - z_s, z_s - ca.DM(self._ubx), problem_parts(settings, model).hard_g(
-                x_s / lam, u_s / lam))
+            excess = ca.vertcat(ca.DM(self._lbx) - z_s, z_s - ca.DM(self._ubx), hard_g(x_s / lam, u_s / lam))
             self._in_reach = ca.Function("projection_in_reach", [y_t], [ca.mmax(excess)])
 
     def __call__(self, y_t: Sequence[float], end: float = math.inf) -> np.ndarray:

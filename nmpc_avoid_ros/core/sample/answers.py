@@ -143,15 +143,15 @@ class SampleAnswers:
         the solver's to meet). The plan replaced predicted penetration, or led to a failed solve, and was
         inconsistent with the command applied (a rate row forbade its u(0)): its warm starts failed sample after
         sample (campaign bicycle_world-0027: five FATROP solves abandoned at the deadline, each followed by a
-        re-seed through the cold-start solvers). Not in the passage mode (the long plan has its own horizon)."""
-        if carry.passage or len(choice.inputs) != self.nlp.layout.horizon:
+        re-seed through the cold-start solvers). Not in the passage mode (the long plan has its own horizon); else
+        the regular NLP's plan: the candidates span its horizon (FallbackSelector.horizon)."""
+        if carry.passage:
             return
-        active = self._active(carry)
-        last = choice.states[-1]
+        last, nlp = choice.states[-1], self.nlp
         x_a, u_a = steady_of(self.model, np.asarray(self.model.output(last, choice.inputs[-1]), float).ravel(), last)
         y_a = np.asarray(self.model.output(x_a, u_a), float).ravel()
         carry.plan = self._continued(Plan(choice.inputs.copy(), choice.states.copy(), y_a, x_a, u_a,
-                                          np.zeros(active.layout.n_w), np.zeros(active.lbg.size)))
+                                          np.zeros(nlp.layout.n_w), np.zeros(nlp.lbg.size)))
         carry.aged = False  # the plan applied now: the next warm start shifts it by one sample
 
     @functools.cached_property
