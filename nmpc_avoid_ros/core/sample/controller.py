@@ -125,6 +125,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         self._input_hi = np.asarray(self.settings.input_max, float)
         #: y_t -> its nearest reachable output y* (core/nlp/projection.py): the target the NLP tracks
         self.project_target = TargetProjection(self.settings, self.model)
+        self.project_target(np.zeros(self.model.p))  # IPOPT's first call here, before the solve worker forks
         # every solver call of the search runs in a child that is abandoned at the sample's deadline
         # (core/nlp/worker.py): built last, so that the child holds every NLP
         nlps = [self.nlp, self.cold_nlp, long_nlp, *(tier for _, tier in self.tiered.tiers)]
