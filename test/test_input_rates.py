@@ -135,3 +135,25 @@ def test_a_steady_fallback_applies_the_input_it_was_judged_by_not_the_plans_next
     assert follow.age == 0 and np.array_equal(follow.inputs, fallback.inputs)
     assert np.array_equal(follow.states, fallback.states) and follow.u_a[0] == 0.0
     np.testing.assert_allclose(follow.x_a[:2], fallback.states[-1][:2])
+
+
+def test_a_fallback_commands_inside_the_input_box_when_the_plan_meets_its_bound_to_a_tolerance_only():
+    """A solver meets an input bound to its tolerance only; the `shift` and `steady` fallbacks judge and apply the
+    plan's inputs clipped into the box. Before, a shift fallback applied the raw plan: the flood test's van der
+    Pol (|u| <= 6) commanded beyond 6 (CI of stop 41)."""
+    settings = UNICYCLE.replace(codegen=False)
+    controller = NmpcController(settings)
+    x, goal = np.array([0.0, 0.0, 0.0]), np.array([4.0, 0.0])
+    for _ in range(3):
+        x = controller.step(x, goal).states[1]
+    plan = controller.memory.plan
+    hi, lo = np.asarray(settings.input_max), np.asarray(settings.input_min)
+    plan.inputs[:, 0] = hi[0] + 1e-7  # the plan rides the upper speed bound, a little beyond it
+    plan.inputs[:, 1] = lo[1] - 1e-7  # and the lower turn-rate bound
+    plan.u_a[:] = hi + 1e-7
+    controller.worker.interrupt()  # every solver call fails: the fallback answers
+    fallback = controller.step(x + 0.0, goal)
+    assert fallback.status in ("fallback_shift", "fallback_steady"), fallback.fallback_reason
+    assert np.all(fallback.inputs <= hi) and np.all(fallback.inputs >= lo), fallback.inputs
+    assert np.all(fallback.u <= hi) and np.all(fallback.u >= lo)
+    assert fallback.u[0] == hi[0] or fallback.status == "fallback_steady"

@@ -108,10 +108,12 @@ class SampleAnswers:
         age = 0 if plan is None else plan.age + 1
         if plan is not None:
             N = len(plan.inputs)
-            shifted = plan.shifted(age)[0][:H]
+            # into the input box, as judged so applied (a solver meets its bounds to its tolerance only: with the
+            # raw plan a shift fallback commanded beyond |u| <= 6 in test_flood_dds)
+            shifted = np.minimum(np.maximum(plan.shifted(age)[0][:H], self._input_lo), self._input_hi)
             # with terminal: set the steady candidate is the local controller from x (None: u_a held)
             local = self._tail.rollout(x, plan.y_a, plan.x_a, plan.u_a, H, self._input_lo, self._input_hi)
-            u_a = plan.u_a if local is None else local[0]
+            u_a = np.minimum(np.maximum(plan.u_a, self._input_lo), self._input_hi) if local is None else local[0]
         choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and age < N, sample.in_domain,
                                       sample.end)
         sample.seconds += choice.solve_time
