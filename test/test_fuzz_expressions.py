@@ -13,7 +13,9 @@ the wall clock of a shared machine also counts other jobs (0.38 s wall seen on a
 CI), and the process's CPU time other threads of the test worker; the garbage collector is off while a
 parse is timed (0.5 s of process CPU time for "x1 // 2" in a fresh-clone run, the parse itself 0.6 ms: a
 collection of the worker's garbage or another thread). time_limit still turns a hang into a failure on the
-wall clock.
+wall clock. A quick parse is timed twice and the lesser time is held: a parser that blows up does so
+every time, while a one-off cost outside the parse does not (0.39 s for "sqrt(().__class__)" once in a
+fresh-clone run, with the collector off; the parse itself takes 0.1 ms).
 """
 
 from __future__ import annotations
@@ -169,6 +171,20 @@ def parse_clock() -> Iterator[Callable[[], float]]:
         gc.enable()
 
 
+def quick_parse(parser: Callable, text: str) -> tuple[object, float]:
+    """parser(text, symbols()) run twice: its result (or the ExpressionError it raised) and the lesser of the
+    two parses' CPU seconds (module doc)."""
+    times, outcome = [], None
+    for _ in range(2):
+        with parse_clock() as seconds, time_limit(2.0):
+            try:
+                outcome = parser(text, symbols())
+            except ExpressionError as exc:
+                outcome = exc
+        times.append(seconds())
+    return outcome, min(times)
+
+
 @fuzz_settings(300)
 @given(st.sampled_from(FORBIDDEN), arithmetic, st.sampled_from([
     "{bad}", "{ok} + {bad}", "sqrt({bad})", "max({ok}, {bad})", "-({bad}) * {ok}", "({bad}) <= {ok}",
@@ -177,10 +193,9 @@ def parse_clock() -> Iterator[Callable[[], float]]:
 def test_forbidden_constructs_are_refused_wherever_they_are(bad: str, ok, template: str) -> None:
     text = template.format(bad=bad, ok=ok[0])
     for parser in (parse_expression, parse_keep_in):
-        with parse_clock() as seconds, time_limit(2.0), pytest.raises(ExpressionError) as info:
-            parser(text, symbols())
-        assert str(info.value).strip()
-        assert seconds() < 0.25, text
+        refusal, seconds = quick_parse(parser, text)
+        assert isinstance(refusal, ExpressionError) and str(refusal).strip(), (text, refusal)
+        assert seconds < 0.25, text
 
 
 @fuzz_settings(200)
@@ -198,13 +213,11 @@ def test_any_other_name_or_function_is_refused_and_named(name: str) -> None:
                                                   max_size=200)))
 def test_arbitrary_text_is_accepted_as_casadi_or_refused_quickly(text: str) -> None:
     for parser in (parse_expression, parse_keep_in):
-        with parse_clock() as seconds, time_limit(2.0):
-            try:
-                result = parser(text, symbols())
-            except ExpressionError as exc:
-                assert str(exc).strip()
-                continue
-        assert seconds() < 0.25
+        result, seconds = quick_parse(parser, text)
+        assert seconds < 0.25
+        if isinstance(result, ExpressionError):
+            assert str(result).strip()
+            continue
         g = result if parser is parse_expression else result.g
         assert isinstance(g, ca.SX) and g.is_scalar()
 
