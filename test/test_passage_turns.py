@@ -48,9 +48,9 @@ class _Phases(SearchPhases):
                                       guesses=lambda *a: guesses, penetration_guesses=lambda *a: guesses)
         passage_guesses = [SimpleNamespace(label=f"passage:p{i}") for i in range(PASSAGE_GUESSES)]
 
-        def starts(x, y_t, par, base, regions, next_guess, per_sample):
+        def starts(x, y_t, par, base, regions, next_guess, per_sample, end, found):
             batch, rest = guess_batch(passage_guesses, next_guess, per_sample)
-            return batch, len(passage_guesses) - rest, rest
+            return batch, len(passage_guesses) - rest, rest, found
 
         self.passage = SimpleNamespace(available=True, can_hand_back=lambda *a: False, starts=starts,
                                        admit=lambda *a: (lambda c: "offset not lower"))

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..nlp.search import VIOLATION_TOLERANCE, Candidate
+from .candidates import Guess
 from .feedback import Prepared
 from .mismatch import MismatchMargin
 from .status import FeedbackOutcome
@@ -37,6 +38,8 @@ class SampleMemory:
     passage: in the passage mode (the plan is the long NLP's, core/sample/passage.py).
     passage_due: the short escape found nothing: try the long NLP on the next stalled sample.
     passage_next: with guesses per sample, the index of the next passage guess to solve.
+    passage_guess: the trajectory the passage's search found (core/sample/trajectory_guess.py), solved at the
+        next passage guess's turn; None: none found.
     mismatch: the one-step prediction errors measured and the margin they add (core/sample/mismatch.py).
     command: the last command answered [m] (a step's or `coast`'s u), in force while the next state ages
         (core/sample/latency.py); None before the first.
@@ -54,6 +57,7 @@ class SampleMemory:
     passage: bool = False
     passage_due: bool = False
     passage_next: int = 0
+    passage_guess: Guess | None = None
     mismatch: MismatchMargin = field(default_factory=MismatchMargin)
     command: np.ndarray | None = None
     last: Sample | None = None
@@ -61,12 +65,14 @@ class SampleMemory:
 
     def carry(self) -> Carry:
         """A sample's working copy of what it may change, as the memory holds it now."""
-        return Carry(self.plan, self.pending, self.reseed, self.passage, self.command, self.last, self.prepared)
+        return Carry(self.plan, self.pending, self.reseed, self.passage, self.command, self.last, self.prepared,
+                     self.passage_guess)
 
     def advance(self, carry: Carry) -> None:
         """The one writer of the memory: what the sample left in `carry` becomes the memory of the next sample."""
         self.plan, self.pending, self.reseed, self.passage = carry.plan, carry.pending, carry.reseed, carry.passage
         self.command, self.last, self.prepared = carry.command, carry.last, carry.prepared
+        self.passage_guess = carry.passage_guess
         if carry.aged and self.plan is not None:  # no plan kept: the last one ages by the sample
             self.plan.age += 1
         if carry.waited:  # stalled, inside the wait after a vain escape: one sample of it spent
@@ -102,12 +108,13 @@ class Carry:
 
     The sample's working state, begun as the memory's (SampleMemory.carry) and changed by its phases:
     plan (a kept or answered plan replaces it; a passage hand-back shortens it), pending (the budget-cut
-    iterate to continue), reseed, passage (the mode, entered or ended), command, last and prepared (as in
-    SampleMemory). Then what the phases found: aged (no plan kept, the plan ages by one sample); waited (a
-    stall inside the wait after a vain escape); escape (MORE: its next batch with escape_next, VAIN: nothing
-    better at a stall, DONE: a plan kept or a penetrating base's guesses all tried; '' not run) and
-    passage_available (the long horizon is there to try after a vain escape); passage_try (MORE with
-    passage_next, VAIN, ENTERED, NOT_STALLED; '' not due); overrides (RESET or COUNTED; '' unchanged).
+    iterate to continue), reseed, passage (the mode, entered or ended), command, last, prepared and
+    passage_guess (as in SampleMemory). Then what the phases found: aged (no plan kept, the plan ages by one
+    sample); waited (a stall inside the wait after a vain escape); escape (MORE: its next batch with
+    escape_next, VAIN: nothing better at a stall, DONE: a plan kept or a penetrating base's guesses all
+    tried; '' not run) and passage_available (the long horizon is there to try after a vain escape);
+    passage_try (MORE with passage_next, VAIN, ENTERED, NOT_STALLED; '' not due); overrides (RESET or
+    COUNTED; '' unchanged).
     """
 
     plan: Plan | None
@@ -117,6 +124,7 @@ class Carry:
     command: np.ndarray | None
     last: Sample | None
     prepared: Prepared | None
+    passage_guess: Guess | None
     aged: bool = False
     waited: bool = False
     escape: str = ""

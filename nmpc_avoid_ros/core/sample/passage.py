@@ -40,11 +40,14 @@ from ..nlp.search import Candidate, Start
 from ..nlp.tracking import NlpBase
 from ..problem.models import Model
 from ..problem.regions import Region
-from .candidates import EscapeGuesses, guess_batch, guess_start
+from .candidates import EscapeGuesses, Guess, guess_batch, guess_start
 from .step_result import Plan
+from .trajectory_guess import TrajectorySearch
 
 #: a long plan enters the mode only if its offset cost is below this times the short plan's
 PASSAGE_GAIN = 0.9
+#: the turns of the trajectory search and of its guess's solve in the passage's list of guesses
+SEARCH, SOLVE = "trajectory_search", "trajectory_solve"
 #: the mode ends when the long plan stays this close (inf-norm, state units) to its x_a from stage N - 1 on
 PASSAGE_REST = 5e-2
 
@@ -60,6 +63,7 @@ class Passage:
         self.nlp = nlp
         self.horizon = 0 if nlp is None else nlp.layout.horizon
         self.guesses: EscapeGuesses | None = None
+        self.search: TrajectorySearch | None = None
         if nlp is None:
             return
         if model.steady_state is None:
@@ -69,6 +73,7 @@ class Passage:
         if nlp.layout.n_keep_in != short.layout.n_keep_in or nlp.slot_layout != short.slot_layout:
             raise ConfigError("the passage NLP's parameter layout differs from the regular NLP's")
         self.guesses = EscapeGuesses(nlp, model, settings)
+        self.search = TrajectorySearch(settings, model, self.horizon)
 
     @property
     def available(self) -> bool:
@@ -80,15 +85,27 @@ class Passage:
         return 0 if self.nlp is None else self.nlp.solver_builds
 
     def starts(self, x: np.ndarray, y_t: np.ndarray, par: np.ndarray, base: Candidate, regions: Sequence[Region],
-               next_guess: int, per_sample: int) -> tuple[list[Start], int, int]:
-        """The long NLP's starts from the escape guesses (`per_sample` > 0: that many from `next_guess`
-        on), the index of the guess after them and how many guesses remain after them."""
-        assert self.nlp is not None and self.guesses is not None
+               next_guess: int, per_sample: int, end: float, found: Guess | None
+               ) -> tuple[list[Start], int, int, Guess | None]:
+        """The long NLP's starts from its guesses (`per_sample` > 0: that many from `next_guess` on), the index
+        of the guess after them, how many guesses remain after them, and the trajectory found.
+
+        The first two turns are the trajectory search's (core/sample/trajectory_guess.py): a trajectory of the
+        model past the first blocked stretch, searched until `end` (time.perf_counter s), then its solve (from
+        `found`, the one an earlier sample found, or this sample's); then the escape guesses. The search and the
+        solve take a sample each (measured on the 8 stalled live van der Pol scenes with a way past: 50-320 ms
+        to find it, 40-280 ms to solve it)."""
+        assert self.nlp is not None and self.guesses is not None and self.search is not None
         y_a = base.nlp.layout.y_a(base.w).copy()
-        guesses = self.guesses.guesses(x, y_a, y_t, par, regions)
+        beyond = self.guesses.beyond_blocks(y_a, self.guesses.aim(y_t), par)
+        guesses: list = [SEARCH, SOLVE] if beyond else []
+        guesses += self.guesses.guesses(x, y_a, y_t, par, regions)
         batch, rest = guess_batch(guesses, next_guess, per_sample)
-        starts = [guess_start(self.nlp, x, par, guess, f"passage:{guess.label}") for guess in batch]
-        return starts, len(guesses) - rest, rest
+        if SEARCH in batch:
+            found = self.search.find(x, y_a, beyond[0], par, end)
+        batch = [found if guess is SOLVE else guess for guess in batch if guess is not SEARCH]
+        starts = [guess_start(self.nlp, x, par, guess, f"passage:{guess.label}") for guess in batch if guess]
+        return starts, len(guesses) - rest, rest, found
 
     def admit(self, base: Candidate, par: np.ndarray) -> Callable[[Candidate], str]:
         """Why a long plan may not enter the mode ('' if it may): it penetrates, its offset cost is not

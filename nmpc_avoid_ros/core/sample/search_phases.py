@@ -5,6 +5,7 @@ the local-minimum escape guesses or the passage NLP's guesses from the plan foun
 from __future__ import annotations
 
 import math
+import time as clock
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from .memory import DONE, ENTERED, ESCAPE_RETRY_SAMPLES, MORE, NOT_STALLED, VAIN
 from .warm_start import initial_guess
 
 __all__ = ["ESCAPE_RETRY_SAMPLES", "SearchPhases"]
+
+#: the passage's trajectory search (core/sample/trajectory_guess.py) ends by this share of the sample's time left
+TRAJECTORY_SHARE = 0.9
 
 
 class SearchPhases:
@@ -160,8 +164,12 @@ class SearchPhases:
         y_a = base.nlp.layout.y_a(base.w)
         if not self.escape.should_try(y_a, previous_y_a, sample.y_t, sample.par):
             return base
-        starts, next_guess, rest = self.passage.starts(sample.x, sample.y_t, sample.par, base, self._regions,
-                                                       mem.passage_next, s.escape_guesses_per_sample)
+        begin = clock.perf_counter()
+        # the trajectory search may take what is left but a share for a solve in the same turn
+        starts, next_guess, rest, carry.passage_guess = self.passage.starts(
+            sample.x, sample.y_t, sample.par, base, self._regions, mem.passage_next, s.escape_guesses_per_sample,
+            begin + TRAJECTORY_SHARE * sample.time_left(), carry.passage_guess)
+        sample.seconds += clock.perf_counter() - begin
         report.phase = "passage_try"
         entered, _, spent = search(starts, sample.par, sample.time_left(), report, "passage_try",
                                    s.feasibility_tolerance, admit=self.passage.admit(base, sample.par),

@@ -1,0 +1,164 @@
+"""A passage guess that is a trajectory of the model: a breadth-first search over held inputs.
+
+Why: the passage NLP (core/sample/passage.py) starts from the escape guesses, straight lines and
+detours through the state space that ignore the dynamics. Past an ellipse across van der Pol's
+steady states, with |x1 x2| <= 2 beside it, the way round is a swing the polylines do not resemble:
+FATROP from them was abandoned at the deadline, or converged to plans through the region, and the
+loop rested in front of it while a clear way existed (campaign vdp-0033, 0144 and 7 more of the first
+200 live scenes, `local_minimum`). The campaign's own trajectory search (evaluation/campaign/
+reachability.py) found each way offline, at a fine grid in seconds; at the sample's grid it finds
+them in 2-130 ms.
+
+What: from x, every input on a grid (LEVELS values of each input across its box) held one sample,
+integrated as the NLP predicts (its discretisation and sub-steps); a successor is kept when every
+sub-step state is inside the state box and clear of every region as planned (margins included), and
+when its cell (CELL_FRACTION of each state's box width) is new. The search ends at the first state
+whose output lies past the blocked stretch (beyond `y_beyond` in the direction of the way), at the
+passage horizon's depth less one, or at `end`. The guess is that path, then a straight line to the
+steady state of y_beyond over the remaining stages.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from ..config.settings import ControllerSettings
+from ..errors import ConfigError
+from ..nlp.between import between_samples, worst_of
+from ..nlp.codegen import cache_dir, compiled_function, function_library
+from ..nlp.parts import problem_parts
+from ..nlp.search import VIOLATION_TOLERANCE
+from ..problem.models import Model
+from .candidates import Guess
+
+log = logging.getLogger(__name__)
+
+#: values of each input on the search grid (13 for one input; fewer each for more inputs, at least 3)
+LEVELS = 13
+#: one state kept per cell of this fraction of each state's box width
+CELL_FRACTION = 2e-2
+#: the search ends at a state past the block within this many cells of its output's steady state (at rest there)
+REST_CELLS = 2.0
+#: sizes of the mapped stage function (each map costs 6.5 ms to build): a call takes the largest that the successors
+#: left fill, the last one bounds a call's time (the deadline is checked between calls)
+CHUNKS = tuple(4 ** k for k in range(2, 7))
+
+
+class TrajectorySearch:
+    """The breadth-first search of one settings structure (built once; `find` per passage try). With `codegen` its
+    stage function is compiled (cached as the feedback law's answer is, core/nlp/codegen.py; with
+    `codegen_background` a thread compiles it while the interpreted one serves): 2x faster."""
+
+    def __init__(self, settings: ControllerSettings, model: Model, horizon: int) -> None:
+        self.settings, self.model, self.horizon = settings, model, horizon
+        n, m = model.n, model.m
+        parts = problem_parts(settings, model)
+        # one sample as the NLP predicts and judges it (core/nlp/stagewise.py): its sub-steps, and the rows at them
+        # with their chords' terms (a fast swing whose sub-step states were clear bent through a region's rows)
+        ts = settings.sample_time
+        path = model.discrete_path(ts, settings.discretization, settings.integration_steps)
+        x, u, par, elapsed = ca.SX.sym("x", n), ca.SX.sym("u", m), parts.par, ca.SX.sym("t")
+        points = path(x, u)
+        lo, hi = np.array(settings.state_min, float), np.array(settings.state_max, float)
+        rows = worst_of(parts.avoidance(x, u, elapsed), between_samples(parts, x, points, u, elapsed, ts))
+        end = points[:, -1]
+        excess = ca.vertcat(rows, parts.avoidance(end, u, elapsed + ts), end - hi, lo - end)
+        y = ca.SX.sym("y", model.p)
+        self._steady = ca.Function("trajectory_steady", [y], list(model.steady_state(y)))  # Passage requires it
+        # the end's output and how far (state units) the end is from that output's steady state
+        y_end = model.output(end, u)
+        stage = ca.Function("trajectory_stage", [x, u, par, elapsed],
+                            [end, ca.mmax(excess), y_end, ca.fabs(end - self._steady(y_end)[0])])
+        self._maps = self._mapped(stage)
+        if settings.codegen:
+            folder = cache_dir(settings.cache_dir)
+            if settings.codegen_background and not function_library(stage, folder).exists():
+                threading.Thread(target=self._compile, args=(stage, folder), daemon=True,
+                                 name="trajectory-stage-compile").start()
+            else:
+                self._maps = self._mapped(compiled_function(stage, folder))
+        per_input = max(3, int(round(LEVELS ** (1.0 / m))))
+        grids = np.meshgrid(*[np.linspace(a, b, per_input) for a, b in zip(settings.input_min, settings.input_max)])
+        self._levels = np.array(grids).reshape(m, -1)  # [m, per_input**m]
+        self._cell = CELL_FRACTION * (hi - lo)
+
+    @staticmethod
+    def _mapped(stage: ca.Function) -> dict[int, ca.Function]:
+        return {size: stage.map(size) for size in CHUNKS}
+
+    def _compile(self, stage: ca.Function, folder: Path) -> None:
+        """Compile the stage and swap its maps in (one assignment: a search uses either)."""
+        try:
+            self._maps = self._mapped(compiled_function(stage, folder))
+        except ConfigError as error:  # the interpreted stage serves on, as a failed solver compile does
+            log.warning(f"the passage's trajectory search stays interpreted: {error}")
+
+    def find(self, x: np.ndarray, y_from: np.ndarray, y_beyond: np.ndarray, par: np.ndarray, end: float
+             ) -> Guess | None:
+        """A guess [horizon stages] whose first stages are a clear trajectory from x [n] to an output past
+        y_beyond [p] (seen from y_from [p]), resting at y_beyond's steady state; None if none was found by
+        `end` (time.perf_counter s) or within the horizon less one sample. `par`: the NLP's parameters."""
+        direction = np.asarray(y_beyond, float) - np.asarray(y_from, float)
+        if not np.any(direction):
+            return None
+        levels, k = self._levels, self._levels.shape[1]
+        nodes_x, nodes_u, parent = [np.asarray(x, float)], [np.zeros(self.model.m)], [-1]
+        frontier = [0]
+        seen = {tuple(np.floor(x / self._cell).astype(int))}
+        for depth in range(self.horizon - 1):
+            if not frontier or time.perf_counter() >= end:
+                return None
+            fresh = []
+            total, begin = len(frontier) * k, 0
+            while begin < total:
+                if time.perf_counter() >= end:
+                    return None
+                # the largest map that the successors left fill (the smallest, padded, for the last few)
+                size = max((c for c in CHUNKS if c <= total - begin), default=CHUNKS[0])
+                pairs = np.arange(begin, min(begin + size, total))
+                begin += len(pairs)
+                which = [frontier[j] for j in pairs // k]
+                stage = self._maps[size]
+                starts = np.zeros((self.model.n, size))
+                inputs = np.zeros((self.model.m, size))
+                starts[:, :len(pairs)] = np.array([nodes_x[j] for j in which]).T
+                inputs[:, :len(pairs)] = levels[:, pairs % k]
+                ends, excess, ys, rest = (np.asarray(v) for v in stage(starts, inputs, par,
+                                                                        depth * self.settings.sample_time))
+                for j in np.flatnonzero(excess[0, :len(pairs)] <= VIOLATION_TOLERANCE):
+                    cell = tuple(np.floor(ends[:, j] / self._cell).astype(int))
+                    if cell in seen:
+                        continue
+                    seen.add(cell)
+                    nodes_x.append(ends[:, j].copy())
+                    nodes_u.append(inputs[:, j].copy())
+                    parent.append(which[j])
+                    fresh.append(len(nodes_x) - 1)
+                    if (float(np.dot(ys[:, j] - y_beyond, direction)) >= 0.0
+                            and np.all(rest[:, j] <= REST_CELLS * self._cell)):
+                        return self._guess(fresh[-1], nodes_x, nodes_u, parent, y_beyond)
+            frontier = fresh
+        return None
+
+    def _guess(self, leaf: int, nodes_x: list, nodes_u: list, parent: list, y_beyond: np.ndarray) -> Guess:
+        """The path to `leaf`, then a straight line to y_beyond's steady state over the horizon's remaining stages."""
+        x_beyond, u_beyond = (np.asarray(v, float).ravel() for v in self._steady(y_beyond))
+        chain = []
+        while parent[leaf] >= 0:
+            chain.append(leaf)
+            leaf = parent[leaf]
+        chain.reverse()
+        states = [nodes_x[j] for j in chain]
+        inputs = [nodes_u[j] for j in chain]
+        rest = self.horizon - len(chain)
+        for i in range(1, rest + 1):
+            states.append(states[-1] + (x_beyond - states[-1]) / (rest - i + 1))
+            inputs.append(u_beyond)
+        states[-1] = x_beyond
+        return Guess("trajectory", np.asarray(y_beyond, float).copy(), np.array(states), np.array(inputs))
