@@ -39,8 +39,9 @@ from .candidates import Guess
 
 log = logging.getLogger(__name__)
 
-#: values of each input on the search grid (13 for one input; fewer each for more inputs, at least 3)
-LEVELS = 13
+#: values of each input on the search grid (25 for one input, as the campaign's own search; fewer each for more
+#: inputs, at least 3)
+LEVELS = 25
 #: one state kept per cell of this fraction of each state's box width
 CELL_FRACTION = 2e-2
 #: the search ends at a state past the block within this many cells of its output's steady state (at rest there)
