@@ -4,18 +4,21 @@ Why: the passage NLP (core/sample/passage.py) starts from the escape guesses, st
 detours through the state space that ignore the dynamics. Past an ellipse across van der Pol's
 steady states, with |x1 x2| <= 2 beside it, the way round is a swing the polylines do not resemble:
 FATROP from them was abandoned at the deadline, or converged to plans through the region, and the
-loop rested in front of it while a clear way existed (campaign vdp-0033, 0144 and 7 more of the first
-200 live scenes, `local_minimum`). The campaign's own trajectory search (evaluation/campaign/
-reachability.py) found each way offline, at a fine grid in seconds; at the sample's grid it finds
-them in 2-130 ms.
+loop rested in front of it while a clear way existed (campaign vdp-0005, 0033, 0144 and 5 more of the
+first 200 live scenes, `local_minimum`: the campaign's own search, evaluation/campaign/reachability.py,
+found each way offline at a finer grid). From their rest states this search finds 7 of the 8 ways in
+44-335 ms, and FATROP solves each guess to a clear long plan (docs/design.md, 'Passage mode').
 
 What: from x, every input on a grid (LEVELS values of each input across its box) held one sample,
-integrated as the NLP predicts (its discretisation and sub-steps); a successor is kept when every
-sub-step state is inside the state box and clear of every region as planned (margins included), and
-when its cell (CELL_FRACTION of each state's box width) is new. The search ends at the first state
+predicted and judged as the NLP does (core/nlp/stagewise.py: its discretisation and sub-steps, the
+region rows at them with their chords' terms, the margins; a fast swing whose sub-step states were
+clear bent through a region's rows) and inside the state box, within the search's tolerance
+VIOLATION_TOLERANCE; a successor is kept when its cell (CELL_FRACTION of each state's box width) is
+new. The search ends at the first state at rest (within REST_CELLS cells of its output's steady state)
 whose output lies past the blocked stretch (beyond `y_beyond` in the direction of the way), at the
 passage horizon's depth less one, or at `end`. The guess is that path, then a straight line to the
-steady state of y_beyond over the remaining stages.
+steady state of y_beyond over the remaining stages. A path that ended under way past the block, with
+that line as its tail, was dynamically far from feasible, and FATROP went from it into the region.
 """
 
 from __future__ import annotations
@@ -60,8 +63,7 @@ class TrajectorySearch:
         self.settings, self.model, self.horizon = settings, model, horizon
         n, m = model.n, model.m
         parts = problem_parts(settings, model)
-        # one sample as the NLP predicts and judges it (core/nlp/stagewise.py): its sub-steps, and the rows at them
-        # with their chords' terms (a fast swing whose sub-step states were clear bent through a region's rows)
+        # one sample as the NLP predicts and judges it (module doc)
         ts = settings.sample_time
         path = model.discrete_path(ts, settings.discretization, settings.integration_steps)
         x, u, par, elapsed = ca.SX.sym("x", n), ca.SX.sym("u", m), parts.par, ca.SX.sym("t")
