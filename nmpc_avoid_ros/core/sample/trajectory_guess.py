@@ -50,7 +50,7 @@ CELL_FRACTION = 2e-2
 #: the search ends at a state past the block within this many cells of its output's steady state (at rest there)
 REST_CELLS = 2.0
 #: sizes of the mapped stage function (each map costs 6.5 ms to build): a call takes the largest that the successors
-#: left fill, the last one bounds a call's time (the deadline is checked between calls)
+#: left fill and that ends by the search's end at the last call's pace
 CHUNKS = tuple(4 ** k for k in range(2, 7))
 
 
@@ -90,6 +90,8 @@ class TrajectorySearch:
         grids = np.meshgrid(*[np.linspace(a, b, per_input) for a, b in zip(settings.input_min, settings.input_max)])
         self._levels = np.array(grids).reshape(m, -1)  # [m, per_input**m]
         self._cell = CELL_FRACTION * (hi - lo)
+        #: s per stage evaluation, as the last call took (0 before the first: the smallest map is called)
+        self._per_evaluation = 0.0
 
     @staticmethod
     def _mapped(stage: ca.Function) -> dict[int, ca.Function]:
@@ -120,10 +122,13 @@ class TrajectorySearch:
             fresh = []
             total, begin = len(frontier) * k, 0
             while begin < total:
-                if time.perf_counter() >= end:
+                # the largest map that the successors left fill (the smallest, padded, for the last few) and that
+                # ends by `end` at the last call's pace: a call is not interrupted
+                left = end - time.perf_counter()
+                fits = [c for c in CHUNKS if c * self._per_evaluation <= left]
+                if not fits:
                     return None
-                # the largest map that the successors left fill (the smallest, padded, for the last few)
-                size = max((c for c in CHUNKS if c <= total - begin), default=CHUNKS[0])
+                size = max((c for c in fits if c <= total - begin), default=fits[0])
                 pairs = np.arange(begin, min(begin + size, total))
                 begin += len(pairs)
                 which = [frontier[j] for j in pairs // k]
@@ -132,8 +137,10 @@ class TrajectorySearch:
                 inputs = np.zeros((self.model.m, size))
                 starts[:, :len(pairs)] = np.array([nodes_x[j] for j in which]).T
                 inputs[:, :len(pairs)] = levels[:, pairs % k]
+                called = time.perf_counter()
                 ends, excess, ys, rest = (np.asarray(v) for v in stage(starts, inputs, par,
                                                                         depth * self.settings.sample_time))
+                self._per_evaluation = (time.perf_counter() - called) / size
                 for j in np.flatnonzero(excess[0, :len(pairs)] <= VIOLATION_TOLERANCE):
                     cell = tuple(np.floor(ends[:, j] / self._cell).astype(int))
                     if cell in seen:
