@@ -176,3 +176,35 @@ def test_with_input_rate_limits_the_command_in_force_is_state_and_every_later_sa
     solved = [r for r in plans if r.status is StepStatus.OK]  # the first sample is a fallback's (u(0) out of reach)
     assert len(solved) >= 28
     assert all(abs(r.u_a[0] - r.inputs[-1, 0]) <= step + 1e-6 for r in solved)  # the terminal rate row
+
+
+def test_the_sample_after_a_recovery_fallback_is_not_checked_against_the_recovery_plan():
+    """Campaign vdp-0173 (live config, continuous plant): x0 lies in an ellipse's margin band, the first sample is a
+    recovery fallback, and its inputs do not end at the old plan's x_a, so their shift is no candidate of the NLP
+    and bounds nothing. The next sample was scored against it and "violated" (9.1e3 in 1.6e7); it is now
+    unchecked, with the reason, and the check goes on from there."""
+    from pathlib import Path
+
+    from nmpc_avoid_ros.core.config.settings import load_params_file
+    from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+    from nmpc_avoid_ros.core.problem.regions import Ellipse
+
+    root = Path(__file__).resolve().parents[1]
+    live = ControllerSettings.from_params(load_params_file(root / "config" / "van_der_pol_live.yaml")
+                                          .section("controller")).replace(codegen=False)
+    ellipses = [Ellipse((-3.9777889200857595, -0.30236723635659324), (0.5510915397653571, 0.2574280801636013),
+                        2.537669081264092),
+                Ellipse((-0.7446051813900161, -0.9955991811338794), (1.1285651945918354, 0.48876375158759633),
+                        1.643802962334419),
+                Ellipse((-1.4463499143866687, -1.010138723214839), (1.3758193653025022, 0.36721797681628776),
+                        0.3974118281345788),
+                Ellipse((3.592150516745729, -1.9135213520886603), (1.1442086933058446, 0.7488390407817149),
+                        0.4435591660374035)]
+    statuses = []
+    run = run_closed_loop(NmpcController(live), [-0.12881901714842492, -0.8644081705913438], [-1.7407870296212398],
+                          6, "continuous", regions=lambda k: ellipses if k == 0 else None,
+                          on_step=lambda k, result: statuses.append(result.status))
+    assert statuses[0] == StepStatus.FALLBACK_RECOVERY and statuses[1] == StepStatus.OK, statuses
+    after = run.certificate[1]
+    assert not after["checked"] and not after["violated"] and "fallback" in after["reason"], after
+    assert all(c["checked"] and not c["violated"] for c in run.certificate[2:]), run.certificate[2:]
