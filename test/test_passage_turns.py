@@ -75,7 +75,7 @@ def test_every_passage_guess_is_tried_before_the_escape_comes_back(monkeypatch) 
     monkeypatch.setattr(search_phases, "search", _search)
     monkeypatch.setattr(search_phases, "guess_start", lambda nlp, x, par, guess, *a, **k: guess)
     sample = SimpleNamespace(in_domain=True, par=np.zeros(1), x=np.zeros(2), y_t=np.array([2.0]), seconds=0.0,
-                             regular=None, time_left=lambda: 1.0, allowance=1e-3)
+                             regular=None, time_left=lambda: 1.0, allowance=1e-3, stall_deferred=False)
     solved: list[tuple[str, str]] = []
     for _ in range(ESCAPE_GUESSES + PASSAGE_GUESSES + 2):
         report = SearchReport()
@@ -89,3 +89,27 @@ def test_every_passage_guess_is_tried_before_the_escape_comes_back(monkeypatch) 
     # every passage guess once, in order, before any new escape
     assert passage[:PASSAGE_GUESSES] == [f"passage:p{i}" for i in range(PASSAGE_GUESSES)]
     assert "escape" not in phases_seen[ESCAPE_GUESSES:ESCAPE_GUESSES + PASSAGE_GUESSES]
+
+
+def test_a_step_before_its_command_leaves_a_stalls_guesses_to_the_preparation(monkeypatch) -> None:
+    """With `feedback` a step that searches (no law held) does so before its command: it solves the regular start
+    only, and a stall's escape and passage guesses wait for the preparation after the command (a passage try there
+    held the command up to 0.3 s in the live campaign); the turns' bookkeeping is the preparation's alone."""
+    phases = _Phases()
+    _search.base = phases.base
+    monkeypatch.setattr(search_phases, "search", _search)
+    monkeypatch.setattr(search_phases, "guess_start", lambda nlp, x, par, guess, *a, **k: guess)
+
+    def sample(deferred: bool) -> SimpleNamespace:
+        return SimpleNamespace(in_domain=True, par=np.zeros(1), x=np.zeros(2), y_t=np.array([2.0]), seconds=0.0,
+                               regular=None, time_left=lambda: 1.0, allowance=1e-3, stall_deferred=deferred,
+                               carry=phases.memory.carry())
+
+    for deferred, phases_expected in ((True, ["warm"]), (False, ["warm", "escape"])):
+        before = (phases.memory.escape_next, phases.memory.escape_wait, phases.memory.passage_due)
+        report, step = SearchReport(), sample(deferred)
+        phases._search(step, report)
+        phases.memory.advance(step.carry)
+        assert [t.phase for t in report.tried] == phases_expected
+        if deferred:
+            assert (phases.memory.escape_next, phases.memory.escape_wait, phases.memory.passage_due) == before

@@ -113,10 +113,9 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         # the regular NLP solved on the smallest ellipse tier that holds the regions (core/nlp/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
         self.tiered.set_regions(self._regions)  # no regions yet: the smallest tier
-        #: the feedback laws of prepared plans (core/sample/feedback.py), with the `feedback` setting: for the
-        #: regular NLP and its tiers, a law on the tier that holds the regions (its feasibility test, the answer's
-        #: costliest part, is 4x smaller on the paper's run: 5.5 against 21 us); not the passage NLP's (building it
-        #: too doubled a first start's 2 s: passage samples search)
+        #: the feedback laws of prepared plans (core/sample/feedback.py, `feedback`): for the regular NLP and its
+        #: tiers, on the tier that holds the regions (its feasibility test 4x cheaper on the paper's run: 5.5 against
+        #: 21 us); not the passage NLP's (building it too doubled a first start's 2 s: passage samples search)
         s = self.settings
         self.feedback_laws = FeedbackLaws([self.nlp, *(tier for _, tier in self.tiered.tiers)],
                                           cache_dir(s.cache_dir) if s.codegen else None,
@@ -333,6 +332,7 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
     def _solve(self, sample: Sample) -> StepResult:
         """The sample searched: its plan applied and guarded, or the fallback."""
         report = SearchReport()
+        sample.stall_deferred = self.feedback_laws is not None  # to the preparation, after the command (Sample)
         best, last = self._search_within(sample, report)
         if best is None:
             result = self._fall_back(sample, last)

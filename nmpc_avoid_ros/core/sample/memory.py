@@ -145,7 +145,9 @@ class Sample:
     sample began (time.perf_counter s); feedback: what became of a prepared plan (None: there was none);
     measured_at: the measurement's time (s, or None); settled: its mismatch bookkeeping is done (a sample
     answered by its prepared plan does it after its command, `NmpcController._settle`), sent_at: when its
-    command left (s, `command_sent`)."""
+    command left (s, `command_sent`); stall_deferred: a step searched before its command in a loop that prepares
+    (`feedback`): a stall's escape and passage guesses are left to the preparation after the command (a passage
+    try before it held the command up to 0.3 s; a penetrating plan's escape still runs at once)."""
 
     x: np.ndarray
     y_t: np.ndarray
@@ -163,6 +165,7 @@ class Sample:
     feedback: FeedbackOutcome | None = None
     measured_at: float | None = None
     settled: bool = True
+    stall_deferred: bool = False
     sent_at: float | None = None
     #: the depth its plans may predict and be clear (core/nlp/search.py `depth_allowance`)
     allowance: float = VIOLATION_TOLERANCE

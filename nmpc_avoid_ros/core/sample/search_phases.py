@@ -71,6 +71,8 @@ class SearchPhases:
         # sample) and its vain end restarted the passage at its first guess, so later ones were never tried
         if penetrating:
             best = self._escape(sample, best, True, report)
+        elif sample.stall_deferred:
+            pass  # the preparation after the command tries them (Sample.stall_deferred)
         elif mem.passage_due:
             best = self._try_passage(sample, best, previous_y_a, report)
         elif self._escape_due(best, previous_y_a, sample):
