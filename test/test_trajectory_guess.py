@@ -90,3 +90,16 @@ def test_the_stalled_scene_passes_the_ellipse_and_reaches_the_target() -> None:
     assert run.x[-1, 0] == pytest.approx(VDP_0005["target"][0], abs=0.05)
     assert max(ellipse.depth(x) for x in run.x) <= 1e-3
     assert np.max(np.abs(run.x[:, 0] * run.x[:, 1])) <= 2.0 + 1e-3
+
+
+def test_the_campaign_counts_a_passage_entered_between_the_samples() -> None:
+    """A preparation enters the passage mode after the command; the next step's report is the mode's own search.
+    The campaign counted entries by the step's `entered_passage` and read 0 where 290 samples ran the long NLP."""
+    from nmpc_avoid_ros.core.nlp.search import SearchReport
+    from nmpc_avoid_ros.evaluation.campaign.scoring import passage_entries
+
+    phases = ["warm", "escape", "passage_try", "passage", "passage", "passage_ended", "warm", "passage", "warm"]
+    reports = [SearchReport(phase=phase) for phase in phases]
+    assert passage_entries(reports) == (2, 3)
+    reports[2].entered_passage = True  # entered by the step's own search: the same entry
+    assert passage_entries(reports) == (2, 4)

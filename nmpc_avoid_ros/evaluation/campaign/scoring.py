@@ -55,6 +55,7 @@ from ...core.loop.metrics import (
     settling_step,
     time_stats,
 )
+from ...core.nlp.search import SearchReport
 from ...core.nlp.tracking import SOLVED
 from ...core.problem.models import Model
 from ...core.problem.regions import Region
@@ -247,6 +248,15 @@ def solver_section(s: Scored) -> dict[str, Any]:
     }
 
 
+def passage_entries(searches: Sequence[SearchReport]) -> tuple[int, int]:
+    """(entries into the passage mode, samples in it) of a run's step reports [K]. A sample is in the mode when its
+    search ran the long NLP (or entered it); an entry is one after a sample that was not. A preparation enters the
+    mode between the samples, and its report is not the step's: counted by `entered_passage` alone, such entries
+    read 0 in the live campaign while 290 samples ran the long NLP."""
+    in_mode = [r.phase == "passage" or r.entered_passage for r in searches]
+    return sum(now and not before for before, now in zip([False, *in_mode], in_mode)), sum(in_mode)
+
+
 def robustness_section(s: Scored) -> dict[str, Any]:
     """Penetration where the input can act and after fallbacks; local-minimum escapes.
 
@@ -260,6 +270,7 @@ def robustness_section(s: Scored) -> dict[str, Any]:
     run = s.run
     keep = keep_in_values(s.settings, s.model, run.x, run.u)
     g = region_values(s.settings, run.x, s.y, run.regions)
+    passages, passage_samples = passage_entries(run.searches)
     if keep.size:
         g = np.maximum(g, keep.max(axis=1))
     after_fallback = [float(np.max(g[k + 1:k + 1 + s.settings.horizon]))
@@ -279,8 +290,8 @@ def robustness_section(s: Scored) -> dict[str, Any]:
         "unavoidable_at_start": bool(run.predicted_violations and run.predicted_violations[0] > 1e-3),
         "escapes_tried": sum(r.guesses_tried for r in run.searches),
         "escapes_taken": sum(r.guess_taken for r in run.searches),
-        "passages": sum(r.entered_passage for r in run.searches),
-        "passage_samples": sum(r.phase == "passage" or r.entered_passage for r in run.searches),
+        "passages": passages,
+        "passage_samples": passage_samples,
         "starts_cut_by_time": sum(r.cut_by_time for r in run.searches),
     }
 
