@@ -428,3 +428,29 @@ def test_starts_the_clock_cut_are_counted_so_a_load_dependent_outcome_shows(camp
     summary = json.loads((tmp_path / "summary.json").read_text())["summary"]["vdp"]
     assert summary["starts_cut_by_time"] == record["starts_cut_by_time"]
     assert summary["runs_with_starts_cut_by_time"] == 1
+
+
+@pytest.mark.slow
+def test_a_stop_held_off_y_tilde_by_a_regions_margin_is_at_the_margin_not_a_local_minimum():
+    """Live campaign vdp-0059 (seed 0): the ellipses cover the target's side; the loop rests at x1 = -4.622, 0.056
+    from y~ = -4.678 (which ignores the margins the controller plans with; the threshold is 0.05) and at y~ among
+    the regions as planned. It was a `local_minimum`; it is `at_margin` now, and still not converged."""
+    from pathlib import Path
+
+    from nmpc_avoid_ros.evaluation.campaign.scenarios import load_settings
+    from nmpc_avoid_ros.evaluation.campaign.scoring import Tools, score_scenario
+
+    config = Path(__file__).resolve().parents[1] / "config" / "van_der_pol_live.yaml"
+    family = families({"vdp": str(config)})["vdp"]
+    settings = load_settings(config).replace(codegen=False)
+    spec = {"id": "vdp-0059", "family": "vdp", "index": 59, "x0": [0.09203190934659489, 1.2197577489656068],
+            "target": [-6.100916258614591], "steps": 80, "plant": "continuous", "sample_time": 0.5,
+            "ellipses": [{"center": c, "semi_axes": a, "yaw": yaw, "frame": "state"} for c, a, yaw in (
+                ([4.486436864317479, -1.0851393050708396], [1.2763603449648964, 0.2792090349684029], 2.133309402336944),
+                ([-5.112232086099378, 0.23104293580554947], [1.0983748538765414, 0.4101096814741], 0.4449799401935857),
+                ([-5.8040641733296265, 0.2577050884363843], [0.4596254276867341, 0.5841018643211434],
+                 1.1041946161700151))]}
+    record = score_scenario(spec, family, Tools.build(settings))
+    assert record["stop_short"] and not record["converged"], record
+    assert record["error_to_admissible"] > SETTLING_TOLERANCE > record["error_to_admissible_planned"], record
+    assert record["stop_short_cause"] == "at_margin"

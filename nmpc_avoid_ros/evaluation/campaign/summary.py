@@ -170,6 +170,8 @@ DEFINITIONS = {
     "converged": f"|y - y*| < {SETTLING_TOLERANCE:g} from some sample on, to the end",
     "near": f"|y_K - y*| < {NEAR_TOLERANCE:g} (y* = y_t for a reachable target)",
     "stop_short": "at rest but not converged; distance |y_K - y*|; cause obstacle_covers_target (stopped at y~ != y*), "
+                  "at_margin (stopped at y~ among the regions as planned, inflated by planning_margin: their margin "
+                  "holds it off y~; a local_minimum before 2026-12-05), "
                   "no_passage (no admissible way to y~ exists) or local_minimum (one exists); van der Pol's way is a "
                   "clear trajectory of the model through a corridor of free x2 (corridor_to_admissible: the corridor "
                   "alone, the test before 2026-12-05)",
