@@ -20,8 +20,9 @@ from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_
 from nmpc_avoid_ros.core.loop.closed_loop import make_plant, run_closed_loop
 from nmpc_avoid_ros.core.nlp.search import Outcome, Start, plan_cost, solve_start
 from nmpc_avoid_ros.core.problem.regions import Ellipse, Polygon
-from nmpc_avoid_ros.core.sample.candidates import Guess, guess_start
+from nmpc_avoid_ros.core.sample.candidates import Guess
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.guess_starts import guess_start
 from nmpc_avoid_ros.core.sample.status import StepStatus
 from nmpc_avoid_ros.core.sample.warm_start import initial_guess
 from nmpc_avoid_ros.evaluation.campaign.scenarios import families, load_settings

@@ -16,8 +16,9 @@ from nmpc_avoid_ros.core.errors import InputError
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
 from nmpc_avoid_ros.core.nlp.search import Candidate, Outcome, SearchReport, plan_cost, search
 from nmpc_avoid_ros.core.problem.regions import Ellipse
-from nmpc_avoid_ros.core.sample.candidates import Guess, escape_admission, guess_start
+from nmpc_avoid_ros.core.sample.candidates import Guess
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.guess_starts import escape_admission, guess_start
 
 #: an ellipse across x2 = 0 (steady states x1 in [2.95, 3.45]) whose top is only 0.05 above the
 #: axis: from x0 = (-5, 0) towards y_t = 7.9 (best reachable 5.94) the loop rested at x1 = 2.95
@@ -101,7 +102,7 @@ def solved(label: str, nlp, w: np.ndarray, cost: float, depth: float) -> Candida
 
 def escape(nlp, x, par, base, guesses, time_left):
     """`search` (core/nlp/search.py) over the guesses, `base` competing, under the escape's admission
-    (candidates.escape_admission: no deeper than the base)."""
+    (guess_starts.escape_admission: no deeper than the base)."""
     report = SearchReport()
     best, _, spent = search([guess_start(nlp, x, par, g) for g in guesses], par, time_left, report, "escape", 1e-6,
                             base=base, admit=escape_admission(base))

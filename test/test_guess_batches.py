@@ -1,5 +1,5 @@
 """escape_guesses_per_sample: the local-minimum escape and the passage mode spread their guesses
-over samples, so one sample's work stays bounded (core/candidates.guess_batch).
+over samples, so one sample's work stays bounded (core/sample/guess_starts.py guess_batch).
 
 Scenes: the bench's `vdp_4_ellipses` (the paper's run among 4 ellipses, one across the steady
 states on the way; all guesses at once made its worst warm sample 3 FATROP solves) and campaign
@@ -18,8 +18,9 @@ from nmpc_avoid_ros.core.config.settings import ControllerSettings
 from nmpc_avoid_ros.core.errors import ConfigError
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
 from nmpc_avoid_ros.core.nlp.search import Outcome
-from nmpc_avoid_ros.core.sample.candidates import Guess, guess_batch
+from nmpc_avoid_ros.core.sample.candidates import Guess
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.guess_starts import guess_batch
 
 
 def _guesses(count: int) -> list[Guess]:

@@ -15,7 +15,7 @@ import numpy as np
 
 from nmpc_avoid_ros.core.nlp.search import SearchReport
 from nmpc_avoid_ros.core.sample import search_phases
-from nmpc_avoid_ros.core.sample.candidates import guess_batch
+from nmpc_avoid_ros.core.sample.guess_starts import guess_batch
 from nmpc_avoid_ros.core.sample.memory import SampleMemory
 from nmpc_avoid_ros.core.sample.search_phases import ESCAPE_RETRY_SAMPLES, SearchPhases
 

@@ -25,8 +25,8 @@ from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_
 from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
 from nmpc_avoid_ros.core.nlp.search import VIOLATION_TOLERANCE
 from nmpc_avoid_ros.core.problem.regions import Ellipse
-from nmpc_avoid_ros.core.sample.candidates import guess_w
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.guess_starts import guess_w
 from nmpc_avoid_ros.core.sample.trajectory_guess import TrajectorySearch
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -40,7 +40,8 @@ from ..nlp.search import Candidate, Start
 from ..nlp.tracking import NlpBase
 from ..problem.models import Model
 from ..problem.regions import Region
-from .candidates import EscapeGuesses, Guess, guess_batch, guess_start
+from .candidates import EscapeGuesses, Guess
+from .guess_starts import guess_batch, guess_start
 from .step_result import Plan
 from .trajectory_guess import TrajectorySearch
 

@@ -13,7 +13,7 @@ from ..nlp.search import Candidate, SearchReport, Start, search
 from ..nlp.stagewise import COLD_START_ITERATIONS
 from ..nlp.tiers import TieredNlp
 from ..nlp.tracking import NlpBase
-from .candidates import escape_admission, guess_batch, guess_start
+from .guess_starts import escape_admission, guess_batch, guess_start
 from .memory import DONE, ENTERED, ESCAPE_RETRY_SAMPLES, MORE, NOT_STALLED, VAIN, Carry, Sample, SampleMemory
 from .warm_start import initial_guess
 
@@ -130,7 +130,7 @@ class SearchPhases:
 
     def _escape(self, sample: Sample, base: Candidate, penetrating: bool, report: SearchReport) -> Candidate:
         """The lowest-cost plan among the base and the escape guesses (for a `penetrating` base: a clear
-        plan first); none may predict more penetration than the base (candidates.escape_admission)."""
+        plan first); none may predict more penetration than the base (guess_starts.escape_admission)."""
         mem, s, x = self.memory, self.settings, sample.x
         # FATROP solves the guesses itself, on the tier that holds the regions (measured on a 4-ellipse
         # van der Pol scene: the same plans, 12-14 ms for three guesses); the SQP paths stall from far
