@@ -24,6 +24,7 @@ import shutil
 import signal
 import subprocess
 import tempfile
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -129,6 +130,29 @@ def compiled_function(function: ca.Function, folder: Path) -> ca.Function:
                 raise ConfigError(f"compiling the generated {name} failed: {stderr.strip()[:500]}")
             os.replace(built, library)
     return ca.external(name, str(library))
+
+
+def serve_compiled(function: ca.Function, folder: Path | None, background: bool, install: Callable[[ca.Function], None],
+                   what: str) -> None:
+    """`install` the Function that serves for `function`: itself without a cache `folder`; else compiled
+    (`compiled_function`), at once, or with `background` and nothing in the cache, the interpreted one now and the
+    compiled one from a thread once built (a first start waits for nothing, as the solvers with codegen_background).
+    A failed compile leaves the interpreted one serving, with a warning naming `what`."""
+    if folder is None:
+        install(function)
+        return
+    if not background or function_library(function, folder).exists():
+        install(compiled_function(function, folder))
+        return
+    install(function)
+
+    def compile_and_install() -> None:
+        try:
+            install(compiled_function(function, folder))
+        except ConfigError as error:  # as a failed solver compile: the interpreted one serves on
+            log.warning(f"{what} stays interpreted: {error}")
+
+    threading.Thread(target=compile_and_install, daemon=True, name=f"{function.name()}-compile").start()
 
 
 def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Function],

@@ -20,25 +20,21 @@ config: commands within 1e-10 of a full solve at the same state; docs/design.md)
 
 from __future__ import annotations
 
-import logging
-import threading
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from ..errors import ConfigError
 from ..nlp.buffered import Buffered
-from ..nlp.codegen import compiled_function, function_library
+from ..nlp.codegen import serve_compiled
 from ..nlp.parts import command_index
 from ..nlp.search import VIOLATION_TOLERANCE, SearchReport
 from ..nlp.sensitivity import MULTIPLIER_TOLERANCE, FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
 from .status import FeedbackOutcome
 from .step_result import Plan
-
-log = logging.getLogger(__name__)
 
 #: the solver status of a sample its prepared plan answered: no solver ran in it (its preparation's did)
 ANSWERED_STATUS = "feedback"
@@ -102,22 +98,13 @@ class FeedbackLaws:
             self._cost_jacobian[id(nlp)] = ca.Function("cost_jacobian", [w, p], [terms, ca.jacobian(terms, w),
                                                                                  ca.jacobian(terms, p)])
             answer = answer_function(nlp, followed)
-            if compiled_in is None:
-                self._answer[id(nlp)] = _Answer(answer)
-            elif background and not function_library(answer, compiled_in).exists():
-                self._answer[id(nlp)] = _Answer(answer)
-                threading.Thread(target=self._compile, args=(id(nlp), answer, compiled_in), daemon=True,
-                                 name="feedback-answer-compile").start()
-            else:
-                self._answer[id(nlp)] = _Answer(compiled_function(answer, compiled_in))
+            serve_compiled(answer, compiled_in, background, functools.partial(self._install, id(nlp)),
+                           "the feedback law's answer")
 
-    def _compile(self, key: int, answer: ca.Function, folder: Path) -> None:
-        """Compile an answer and swap it in (one dict assignment: a feedback call uses either; the new one is bound
-        to its law at its first call)."""
-        try:
-            self._answer[key] = _Answer(compiled_function(answer, folder))
-        except ConfigError as error:  # the interpreted answer serves on, as a failed solver compile does
-            log.warning(f"the feedback law's answer stays interpreted: {error}")
+    def _install(self, key: int, answer: ca.Function) -> None:
+        """Serve `answer` for the NLP `key` (one dict assignment: a feedback call uses either; the new one is bound to
+        its law at its first call)."""
+        self._answer[key] = _Answer(answer)
 
     def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
         """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none; a law is bound to the answer."""

@@ -23,24 +23,18 @@ that line as its tail, was dynamically far from feasible, and FATROP went from i
 
 from __future__ import annotations
 
-import logging
-import threading
 import time
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
 from ..config.settings import ControllerSettings
-from ..errors import ConfigError
 from ..nlp.between import between_samples, worst_of
-from ..nlp.codegen import cache_dir, compiled_function, function_library
+from ..nlp.codegen import cache_dir, serve_compiled
 from ..nlp.parts import problem_parts
 from ..nlp.search import VIOLATION_TOLERANCE
 from ..problem.models import Model
 from .candidates import Guess
-
-log = logging.getLogger(__name__)
 
 #: values of each input on the search grid (25 for one input, as the campaign's own search; fewer each for more
 #: inputs, at least 3)
@@ -56,8 +50,7 @@ CHUNKS = tuple(4 ** k for k in range(2, 7))
 
 class TrajectorySearch:
     """The breadth-first search of one settings structure (built once; `find` per passage try). With `codegen` its
-    stage function is compiled (cached as the feedback law's answer is, core/nlp/codegen.py; with
-    `codegen_background` a thread compiles it while the interpreted one serves): 2x faster."""
+    stage function is compiled (core/nlp/codegen.py `serve_compiled`): 2x faster."""
 
     def __init__(self, settings: ControllerSettings, model: Model, horizon: int) -> None:
         self.settings, self.model, self.horizon = settings, model, horizon
@@ -78,14 +71,11 @@ class TrajectorySearch:
         y_end = model.output(end, u)
         stage = ca.Function("trajectory_stage", [x, u, par, elapsed],
                             [end, ca.mmax(excess), y_end, ca.fabs(end - self._steady(y_end)[0])])
-        self._maps = self._mapped(stage)
-        if settings.codegen:
-            folder = cache_dir(settings.cache_dir)
-            if settings.codegen_background and not function_library(stage, folder).exists():
-                threading.Thread(target=self._compile, args=(stage, folder), daemon=True,
-                                 name="trajectory-stage-compile").start()
-            else:
-                self._maps = self._mapped(compiled_function(stage, folder))
+        # with `codegen` compiled (cached as the feedback law's answer is; swapped in with one assignment: a search
+        # uses either)
+        serve_compiled(stage, cache_dir(settings.cache_dir) if settings.codegen else None, settings.codegen_background,
+                       lambda function: setattr(self, "_maps", self._mapped(function)),
+                       "the passage's trajectory search")
         per_input = max(3, int(round(LEVELS ** (1.0 / m))))
         grids = np.meshgrid(*[np.linspace(a, b, per_input) for a, b in zip(settings.input_min, settings.input_max)])
         self._levels = np.array(grids).reshape(m, -1)  # [m, per_input**m]
@@ -96,13 +86,6 @@ class TrajectorySearch:
     @staticmethod
     def _mapped(stage: ca.Function) -> dict[int, ca.Function]:
         return {size: stage.map(size) for size in CHUNKS}
-
-    def _compile(self, stage: ca.Function, folder: Path) -> None:
-        """Compile the stage and swap its maps in (one assignment: a search uses either)."""
-        try:
-            self._maps = self._mapped(compiled_function(stage, folder))
-        except ConfigError as error:  # the interpreted stage serves on, as a failed solver compile does
-            log.warning(f"the passage's trajectory search stays interpreted: {error}")
 
     def find(self, x: np.ndarray, y_from: np.ndarray, y_beyond: np.ndarray, par: np.ndarray, end: float
              ) -> Guess | None:
