@@ -108,12 +108,11 @@ class SampleAnswers:
         age = 0 if plan is None else plan.age + 1
         if plan is not None:
             N = len(plan.inputs)
-            # into the input box, as judged so applied (a solver meets its bounds to its tolerance only: with the
-            # raw plan a shift fallback commanded beyond |u| <= 6 in test_flood_dds)
-            shifted = np.minimum(np.maximum(plan.shifted(age)[0][:H], self._input_lo), self._input_hi)
+            # into the input box, as judged so applied (with the raw plan a shift fallback commanded beyond |u| <= 6)
+            shifted = self._into_box(plan.shifted(age)[0][:H])
             # with terminal: set the steady candidate is the local controller from x (None: u_a held)
             local = self._tail.rollout(x, plan.y_a, plan.x_a, plan.u_a, H, self._input_lo, self._input_hi)
-            u_a = np.minimum(np.maximum(plan.u_a, self._input_lo), self._input_hi) if local is None else local[0]
+            u_a = self._into_box(plan.u_a) if local is None else local[0]
         choice = self.fallback.choose(x, par, shifted, u_a, plan is not None and age < N, sample.in_domain,
                                       sample.end)
         sample.seconds += choice.solve_time
@@ -175,12 +174,16 @@ class SampleAnswers:
                                                                         result.u_a)
         return result
 
+    def _into_box(self, inputs: np.ndarray) -> np.ndarray:
+        """inputs [..., m] clipped into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond
+        them seen; 1e-7 in a fallback of test_flood_dds). np.clip's dispatch costs ~5 us."""
+        return np.minimum(np.maximum(inputs, self._input_lo), self._input_hi)
+
     def _result(self, plan: Plan, x: np.ndarray, age: int, status: StepStatus, solver_status: str, iterations: int,
                 budget_cut: bool) -> StepResult:
         """The result of applying `plan` aged by `age` samples at state x (the solve time is set by `step`)."""
         inputs, states = plan.shifted(age)  # of the regular horizon, or the passage mode's
-        # into the input box: a solver meets its bounds to its tolerance only (1e-8 beyond them seen)
-        inputs = np.minimum(np.maximum(inputs, self._input_lo), self._input_hi)  # np.clip's dispatch costs ~5 us
+        inputs = self._into_box(inputs)
         states[0] = x
         return StepResult(inputs[0].copy(), states, inputs, plan.y_a.copy(), plan.x_a.copy(), plan.u_a.copy(),
                           *plan.costs, status, solver_status, iterations, 0.0, budget_cut)
