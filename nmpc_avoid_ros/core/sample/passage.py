@@ -94,8 +94,8 @@ class Passage:
         The first two turns are the trajectory search's (core/sample/trajectory_guess.py): a trajectory of the
         model past the first blocked stretch, searched until `end` (time.perf_counter s), then its solve (from
         `found`, the one an earlier sample found, or this sample's); then the escape guesses. The search and the
-        solve take a sample each (measured on the 8 stalled live van der Pol scenes with a way past: 50-320 ms
-        to find it, 40-280 ms to solve it)."""
+        solve take a sample each (measured on the 8 stalled live van der Pol scenes with a way past: 44-335 ms
+        to find it, 37-172 ms to solve it)."""
         assert self.nlp is not None and self.guesses is not None and self.search is not None
         y_a = base.nlp.layout.y_a(base.w).copy()
         beyond = self.guesses.beyond_blocks(y_a, self.guesses.aim(y_t), par)
