@@ -34,7 +34,7 @@ from nmpc_avoid_ros.evaluation.campaign.world import body_clearance, room_world,
 
 # seed 2: vdp-0004 (unreachable target -6.4) and vdp-0005 (target 0.8) have no ellipse
 SEED = "2"
-TIMING_KEYS = {"solve_ms_max", "solve_ms_median_of_medians", "solve_ms"}
+TIMING_KEYS = {"solve_ms_max", "solve_ms_median_of_medians", "solve_ms", "command_ms", "command_ms_warm"}
 
 
 def _args(out, *extra):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
-from nmpc_avoid_ros.core.loop.closed_loop import ContinuousPlant, Plant, drive, make_plant
+from nmpc_avoid_ros.core.loop.closed_loop import ClosedLoopRun, ContinuousPlant, Plant, drive, make_plant
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 from nmpc_avoid_ros.core.sample.status import FeedbackOutcome
@@ -86,6 +86,11 @@ def test_the_prepared_loop_is_the_searched_loop_without_a_solver_call_in_most_sa
         assert 0 < result.feedback_time < result.solve_time and result.preparation_time > 0
         assert result.iterations == 0 and str(result.status) == "ok"
     assert all(r.feedback is None and not r.preparation_time for r in searched.outcomes)
+    # the state-to-command time the campaign reports: an answered sample's feedback time, a searched one's solve
+    command = ClosedLoopRun.from_trajectory(prepared).command_time
+    feedback_times = np.array([r.feedback_time for r in prepared.outcomes])
+    assert np.allclose(command[feedback_times > 0], feedback_times[feedback_times > 0], atol=1e-12)
+    assert np.array_equal(ClosedLoopRun.from_trajectory(searched).command_time, searched.solve_time)
 
 
 @pytest.mark.parametrize("name", BOTH)

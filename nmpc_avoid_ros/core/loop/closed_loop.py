@@ -315,6 +315,14 @@ class ClosedLoopRun:
                    feedback=[str(r.feedback or "") for r in res],
                    terminal=np.array([(r.terminal_cost, r.terminal_level) for r in res]).reshape(K, 2))
 
+    @property
+    def command_time(self) -> np.ndarray:
+        """[K] s from each sample's state to its command: the solver time less the preparation, which ran between
+        the samples, after the previous command (core/sample/controller.py `step`)."""
+        if len(self.preparation_time) != len(self.solve_time):  # no phases recorded: all of it before the command
+            return np.asarray(self.solve_time, dtype=float)
+        return np.asarray(self.solve_time, dtype=float) - self.preparation_time
+
     def to_json(self) -> dict:
         """The JSON layout of `simulate --json` (lists of rows, solve time in ms)."""
         return {

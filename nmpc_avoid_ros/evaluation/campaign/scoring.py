@@ -87,7 +87,8 @@ FALLBACK_KINDS = tuple(StepStatus(f"fallback_{kind}") for kind in FALLBACK_CANDI
 #: penetration from this sample on is where the input can act (x(1) is fixed by x(0), u(0) partly)
 FIRST_ACTED_SAMPLE = 2
 #: record fields measured in wall time (machine- and load-dependent); ('trace', 'solve_ms') is nested
-TIMED_FIELDS = ("wall_s", "solve_ms", ("trace", "solve_ms"), "starts_cut_by_time")
+TIMED_FIELDS = ("wall_s", "solve_ms", "command_ms", ("trace", "solve_ms"), ("trace", "command_ms"),
+                "starts_cut_by_time")
 #: a sample is nominal for the certificate when the measured state is this close (inf-norm) to the
 #: previous plan's x(1) (the Euler plant: ~1e-16; the continuous plant: up to ~1 on van der Pol)
 NOMINAL_MISMATCH = 1e-6
@@ -259,6 +260,7 @@ def solver_section(s: Scored) -> dict[str, Any]:
                             for k, (st, ss) in enumerate(zip(run.status, run.solver_status))
                             if st != StepStatus.OK][:5],
         "solve_ms": time_stats(run.solve_time * 1e3),
+        "command_ms": time_stats(run.command_time * 1e3),
         "budget_exhausted": int(sum(st in ("Maximum_Iterations_Exceeded", "Maximum_WallTime_Exceeded",
                                            "Maximum_CpuTime_Exceeded") for st in run.solver_status)),
     }
@@ -328,6 +330,7 @@ def certificate_section(s: Scored) -> dict[str, Any]:
 def trace_section(s: Scored) -> dict[str, Any]:
     """The trajectory kept for the figures (states to 6 digits, solve times, one status code per sample)."""
     return {"trace": {"x": [_vec(r, 6) for r in s.run.x], "solve_ms": _vec(s.run.solve_time * 1e3, 3),
+                      "command_ms": _vec(s.run.command_time * 1e3, 3),
                       "status": "".join(STATUS_CODES[StepStatus(st)] for st in s.run.status)}}
 
 

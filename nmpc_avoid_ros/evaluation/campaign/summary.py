@@ -111,6 +111,11 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "runs_with_starts_cut_by_time": sum(r.get("starts_cut_by_time", 0) > 0 for r in records),
         "solve_ms": time_stats(np.concatenate([r["trace"]["solve_ms"] for r in records]))
         if all("trace" in r for r in records) else None,
+        # the state-to-command part, pooled over the samples after each run's first (warm) and over all
+        "command_ms": time_stats(np.concatenate([r["trace"]["command_ms"] for r in records]))
+        if all("command_ms" in r.get("trace", {}) for r in records) else None,
+        "command_ms_warm": time_stats(np.concatenate([r["trace"]["command_ms"][1:] for r in records]))
+        if all("command_ms" in r.get("trace", {}) for r in records) else None,
         "runs_with_fallback": sum(r["fallbacks"] > 0 for r in records),
         "runs_with_solver_failure": sum(r["solver_failures"] > 0 for r in records),
         "first_solve_failed": sum(not r["initial_feasible"] for r in records),
@@ -200,7 +205,10 @@ DEFINITIONS = {
     "starts_cut_by_time": "solver starts the sample's deadline stopped or its spent budget skipped (core/nlp/search.py "
                           "SearchReport.cut_by_time), and the runs with any: their outcomes may depend on the "
                           "machine's load (a scene that converges alone can fail beside a second job)",
-    "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max",
+    "solve_ms": "solve time per sample, ms, pooled over the family's samples: median, p99, max (all solver time of "
+                "a sample: before its command and its preparation between the samples)",
+    "command_ms": "state to command per sample, ms, pooled: the solver time before the command (a prepared plan's "
+                  "answer or the search); _warm without each run's first sample",
     "x0_in_feasible_set": "x0 in X_N: the first solve was usable, or a cold probe solve with mu=0 and a 1000-iteration/"
                           "20 s budget succeeded ('infeasible' if IPOPT detected infeasibility, else 'unknown')",
     "recursive_feasibility_rate": "P(solve k usable | solve k-1 usable), usable = status ok or truncated",
@@ -267,6 +275,10 @@ def format_summary(summary: dict[str, Any]) -> str:
         if s.get("solve_ms"):
             t = s["solve_ms"]
             lines.append(f"  solve ms median {t['median']:.3g}, p99 {t['p99']:.3g}, max {t['max']:.3g}")
+        if s.get("command_ms_warm"):
+            t = s["command_ms_warm"]
+            lines.append(f"  state to command ms after the first sample: median {t['median']:.3g}, p99 "
+                         f"{t['p99']:.3g}, max {t['max']:.3g}")
     return "\n".join(lines)
 
 
