@@ -4,6 +4,8 @@ searched sample would give; where the law does not hold the sample searches as b
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +13,10 @@ import pytest
 
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
 from nmpc_avoid_ros.core.loop.closed_loop import ClosedLoopRun, ContinuousPlant, Plant, drive, make_plant
+from nmpc_avoid_ros.core.nlp.sensitivity import KktSensitivity
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
+from nmpc_avoid_ros.core.sample.feedback import FeedbackLaws
 from nmpc_avoid_ros.core.sample.status import FeedbackOutcome
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -148,3 +152,54 @@ def test_coasting_drops_the_plan_prepared_for_the_sample_it_replaces_and_off_pre
     off = controller_of("paper", False)
     off.step([-5.0, 0.0], [5.0])
     assert off.prepare() is None
+
+
+def test_the_laws_derivatives_are_saved_once_and_read_back_unchanged(tmp_path):
+    """A later start reads the KKT derivatives from the cache (core/nlp/sensitivity.py) and gets the same law; a
+    damaged file is built again and replaced."""
+    controller, _, _ = prepared_controller("paper", steps=3)
+    prepared = controller.prepared
+    assert prepared is not None and prepared.law is not None
+    nlp, par = prepared.nlp, prepared.law.par
+    columns = prepared.law.columns
+    bounds = (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg)
+    built = KktSensitivity(nlp.problem, columns, tmp_path)
+    saved = sorted(tmp_path.glob("kkt_*.casadi"))
+    assert [p.name.rsplit("_", 1)[1] for p in saved] == ["first.casadi", "second.casadi"]
+    assert not list(tmp_path.glob("*.part"))  # written whole
+    stamps = [p.stat().st_mtime_ns for p in saved]
+    read = KktSensitivity(nlp.problem, columns, tmp_path)
+    assert [p.stat().st_mtime_ns for p in saved] == stamps  # read, not written again
+    laws = [s.law(prepared.law.w, par, bounds) for s in (built, read)]
+    assert np.array_equal(laws[0].dw, laws[1].dw) and np.array_equal(laws[0].dw, prepared.law.dw)
+    saved[0].write_bytes(b"not a CasADi function")
+    again = KktSensitivity(nlp.problem, columns, tmp_path)
+    assert np.array_equal(again.law(prepared.law.w, par, bounds).dw, laws[0].dw)
+    assert saved[0].stat().st_size > 100  # replaced by a whole file
+
+
+def test_a_later_nlps_law_is_built_by_a_thread_and_served_once_there(tmp_path, monkeypatch):
+    """With `background`, the passage NLP's law is built by a thread: until it is there its plans have no law (they
+    search), then they get one; the constructor does not wait for it."""
+    from nmpc_avoid_ros.core.sample import feedback
+
+    controller, _, _ = prepared_controller("paper", steps=3)
+    prepared = controller.prepared
+    assert prepared is not None and prepared.law is not None
+    nlp = prepared.nlp
+    go = threading.Event()
+
+    def held_build(*args):  # the derivatives wait until the test has looked
+        assert go.wait(60.0)
+        return KktSensitivity(*args)
+
+    monkeypatch.setattr(feedback, "KktSensitivity", held_build)
+    laws = FeedbackLaws([], None, True, later=[nlp], derivatives_in=tmp_path)
+    assert "not built yet" in laws.prepare(nlp, prepared.plan, prepared.law.par)
+    go.set()
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline and isinstance(laws.prepare(nlp, prepared.plan, prepared.law.par), str):
+        time.sleep(0.05)
+    law = laws.prepare(nlp, prepared.plan, prepared.law.par)
+    assert not isinstance(law, str), law
+    assert np.allclose(law.dw, prepared.law.dw, atol=1e-9)

@@ -87,6 +87,10 @@ def test_the_stalled_scene_passes_the_ellipse_and_reaches_the_target() -> None:
                           regions=lambda k: [ellipse] if k == 0 else None)
     # the mode is entered between the samples (the preparation's search); the samples after it solve the long NLP
     assert any(r.phase == "passage" for r in run.searches), [r.phase for r in run.searches]
+    # and the long plan, prepared between the samples, answers some of them by its feedback law: no solve before the
+    # command (they searched, 25-50 ms each, before the passage NLP had a law)
+    in_passage = [k for k, r in enumerate(run.searches) if r.phase == "passage"]
+    assert any(run.feedback[k] == "answered" for k in in_passage), [run.feedback[k] for k in in_passage]
     assert run.x[-1, 0] == pytest.approx(VDP_0005["target"][0], abs=0.05)
     assert max(ellipse.depth(x) for x in run.x) <= 1e-3
     assert np.max(np.abs(run.x[:, 0] * run.x[:, 1])) <= 2.0 + 1e-3

@@ -113,13 +113,12 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         # the regular NLP solved on the smallest ellipse tier that holds the regions (core/nlp/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
         self.tiered.set_regions(self._regions)  # no regions yet: the smallest tier
-        #: the feedback laws of prepared plans (core/sample/feedback.py, `feedback`): for the regular NLP and its
-        #: tiers, on the tier that holds the regions (its feasibility test 4x cheaper on the paper's run: 5.5 against
-        #: 21 us); not the passage NLP's (building it too doubled a first start's 2 s: passage samples search)
-        s = self.settings
-        self.feedback_laws = FeedbackLaws([self.nlp, *(tier for _, tier in self.tiered.tiers)],
-                                          cache_dir(s.cache_dir) if s.codegen else None,
-                                          s.codegen_background) if s.feedback else None
+        #: the feedback laws of prepared plans (core/sample/feedback.py, `feedback`): the regular NLP's and its tiers',
+        #: on the tier that holds the regions (its feasibility test 5.5 against 21 us on the paper's run), and the
+        #: passage NLP's (its samples searched before their command, 25-50 ms; built by a thread with background)
+        s, cache, later = self.settings, cache_dir(self.settings.cache_dir), [long_nlp] if long_nlp is not None else []
+        self.feedback_laws = FeedbackLaws([self.nlp, *(tier for _, tier in self.tiered.tiers)], cache if s.codegen
+                                          else None, s.codegen_background, later, cache) if s.feedback else None
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
         #: y_t -> its nearest reachable output y* (core/nlp/projection.py): the target the NLP tracks
@@ -308,8 +307,8 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         where the law does not hold (core/sample/feedback.py), with why in `sample.feedback`."""
         assert self.feedback_laws is not None
         s = self.settings
-        nlp, par = self.tiered.holding(self.nlp, sample.par)
-        if prepared.law is not None and nlp is not prepared.nlp:  # the regions moved to another tier
+        nlp, par = self.tiered.holding(self._active(sample.carry), sample.par)
+        if prepared.law is not None and nlp is not prepared.nlp:  # the regions moved to another tier, a mode changed
             sample.feedback = FeedbackOutcome.INPUTS_CHANGED
             return None
         moved, outcome = self.feedback_laws.answer(prepared, par, s.feasibility_tolerance,

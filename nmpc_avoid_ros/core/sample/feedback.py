@@ -21,6 +21,8 @@ config: commands within 1e-10 of a full solve at the same state; docs/design.md)
 from __future__ import annotations
 
 import functools
+import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,27 +81,46 @@ class FeedbackLaws:
     CasADi Function (answer_function) that moves a prepared plan by its law and checks it, bound to the law once
     when it is prepared; all built in the constructor (core/nlp/sensitivity.py)."""
 
-    def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None, background: bool = False) -> None:
+    def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None, background: bool = False,
+                 later: Sequence[NlpBase] = (), derivatives_in: Path | None = None) -> None:
         """`compiled_in`: the answers are compiled and cached there (core/nlp/codegen.py; None: not);
-        `background`: one missing from the cache is compiled by a thread while the interpreted one serves (a first
-        start waits for nothing, as the solvers with codegen_background)."""
+        `derivatives_in`: the laws' KKT derivatives are saved there and read back by later starts
+        (core/nlp/sensitivity.py; None: built each time); `background`: an answer missing from the cache is
+        compiled by a thread while the interpreted one serves (a first start waits for nothing, as the solvers with
+        codegen_background), and the laws of the `later` NLPs (the passage mode's long one: 2.5 s of symbolic
+        derivatives on an empty cache) are built by a thread too; until then their plans have no law."""
         self._sensitivity: dict[int, KktSensitivity] = {}
         self._answer: dict[int, _Answer] = {}
         self._cost_jacobian: dict[int, ca.Function] = {}
+        self._compiled_in, self._derivatives_in, self._background = compiled_in, derivatives_in, background
         for nlp in nlps:
-            n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
-            # x(0), the command in force (input_rate_max) and each slot's stamp - t_0 (what moves with time; a new
-            # region set is searched)
-            commands = command_index(count, size, nlp.layout.m, bool(nlp.settings.input_rate_max))
-            followed = np.concatenate([np.arange(n), commands, count - size + nlp.slot_layout.time_offsets])
-            self._sensitivity[id(nlp)] = KktSensitivity(nlp.problem, followed)
-            w, p = nlp.problem["x"], nlp.problem["p"]
-            terms = ca.vertcat(*nlp.terms.function(w, p))  # V_o, V_a, tracking
-            self._cost_jacobian[id(nlp)] = ca.Function("cost_jacobian", [w, p], [terms, ca.jacobian(terms, w),
-                                                                                 ca.jacobian(terms, p)])
-            answer = answer_function(nlp, followed)
-            serve_compiled(answer, compiled_in, background, functools.partial(self._install, id(nlp)),
-                           "the feedback law's answer")
+            self._add(nlp)
+        if later and background:
+            # CasADi's symbolic work releases the interpreter lock: the samples go on meanwhile (measured: the
+            # main thread's longest wait 3 ms during a 1.2 s Jacobian)
+            threading.Thread(target=self._add_all, args=(list(later),), daemon=True, name="feedback-laws").start()
+        else:
+            self._add_all(later)
+
+    def _add_all(self, nlps: Sequence[NlpBase]) -> None:
+        for nlp in nlps:
+            self._add(nlp)
+
+    def _add(self, nlp: NlpBase) -> None:
+        """Build the law of `nlp` and its answer; the sensitivity goes in last, as `prepare` looks for it first."""
+        n, size, count = nlp.layout.n, nlp.slot_layout.size, nlp.parameter_count
+        # x(0), the command in force (input_rate_max) and each slot's stamp - t_0 (what moves with time; a new
+        # region set is searched)
+        commands = command_index(count, size, nlp.layout.m, bool(nlp.settings.input_rate_max))
+        followed = np.concatenate([np.arange(n), commands, count - size + nlp.slot_layout.time_offsets])
+        sensitivity = KktSensitivity(nlp.problem, followed, self._derivatives_in)
+        w, p = nlp.problem["x"], nlp.problem["p"]
+        terms = ca.vertcat(*nlp.terms.function(w, p))  # V_o, V_a, tracking
+        self._cost_jacobian[id(nlp)] = ca.Function("cost_jacobian", [w, p], [terms, ca.jacobian(terms, w),
+                                                                             ca.jacobian(terms, p)])
+        serve_compiled(answer_function(nlp, followed), self._compiled_in, self._background,
+                       functools.partial(self._install, id(nlp)), "the feedback law's answer")
+        self._sensitivity[id(nlp)] = sensitivity
 
     def _install(self, key: int, answer: ca.Function) -> None:
         """Serve `answer` for the NLP `key` (one dict assignment: a feedback call uses either; the new one is bound to
@@ -109,7 +130,7 @@ class FeedbackLaws:
     def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
         """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none; a law is bound to the answer."""
         if id(nlp) not in self._sensitivity:
-            return "no law for this NLP (the passage mode's long one: its samples search)"
+            return "its law not built yet (the passage mode's long NLP, built by a thread in the background)"
         layout = nlp.layout
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
         w = nlp.fill_slacks(layout.join_w(plan.inputs, plan.states[1:], plan.y_a, rest, x0=plan.states[0]), par)
