@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from nmpc_avoid_ros.core.config.settings import ControllerSettings, load_params_file
-from nmpc_avoid_ros.core.loop.closed_loop import run_closed_loop
+from nmpc_avoid_ros.core.loop.closed_loop import make_plant, run_closed_loop
 from nmpc_avoid_ros.core.nlp.search import VIOLATION_TOLERANCE
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
@@ -107,3 +107,23 @@ def test_the_campaign_counts_a_passage_entered_between_the_samples() -> None:
     assert passage_entries(reports) == (2, 3)
     reports[2].entered_passage = True  # entered by the step's own search: the same entry
     assert passage_entries(reports) == (2, 4)
+
+
+def test_every_prepared_plan_of_the_passage_gets_its_feedback_law() -> None:
+    """The long plans ride the ellipse's edge with slacks of ~3e-8. A law rebuilt the slacks as max(0, depth), which
+    misses the solver's by its tolerance; with mu = 1e8 the cost's gradient moved by 1-2.4 and 6 of the 10
+    preparations in the mode had no law ("stationarity residual"): their samples searched before the command. The
+    plan now carries its solver's slacks (Plan.slacks)."""
+    controller = NmpcController(LIVE.replace(max_solve_time=2.0))
+    plant = make_plant("continuous", controller.model, controller.settings)
+    x, target, regions = np.array(VDP_0005["x0"]), np.array(VDP_0005["target"]), [VDP_0005["ellipse"]]
+    why_not = []
+    for _ in range(40):
+        result = controller.step(x, target, regions)
+        regions = None
+        x = plant.advance(x, result.u, LIVE.sample_time)
+        prepared = controller.prepare()
+        if controller.memory.passage and prepared is not None:
+            why_not.append(prepared.why)
+    assert len(why_not) >= 5, "the scene entered the passage mode for a few samples"
+    assert why_not == [""] * len(why_not)

@@ -37,7 +37,7 @@ class SampleAnswers:
         x_a, u_a = (v.copy() for v in best.nlp.steady(best.w))
         costs = tuple(float(c[0]) for c in best.nlp.terms(best.w, sample.par))
         carry.plan = self._continued(Plan(U.copy(), np.vstack([sample.x, X]), y_a.copy(), x_a, u_a, lam_x, lam_g, 0,
-                                          costs))
+                                          costs, slacks=_solved_slacks(best)))
         regular = sample.regular
         status = StepStatus.OK if best.solved else StepStatus.TRUNCATED if best.budget_cut else StepStatus.UNCONVERGED
         result = self._result(carry.plan, sample.x, 0, status, regular.solver_status, regular.iterations,
@@ -209,3 +209,11 @@ class SampleAnswers:
         carry.command, carry.aged = result.u.copy(), True
         self.memory.advance(carry)
         return self._terminal_values(result)
+
+
+def _solved_slacks(best: Candidate) -> tuple[int, np.ndarray] | None:
+    """Plan.slacks of a candidate: its NLP's id and slack values, where its w is in that NLP's own layout (a tier's
+    solve comes back in the regular layout: None)."""
+    if isinstance(best.nlp, TieredNlp):
+        return None
+    return id(best.nlp), best.w[best.nlp._slack_index].copy()

@@ -134,6 +134,8 @@ class FeedbackLaws:
         layout = nlp.layout
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
         w = nlp.fill_slacks(layout.join_w(plan.inputs, plan.states[1:], plan.y_a, rest, x0=plan.states[0]), par)
+        if plan.slacks is not None and plan.slacks[0] == id(nlp):  # the solver's own: a KKT point as it left it
+            w[nlp._slack_index] = plan.slacks[1]
         law = self._sensitivity[id(nlp)].law(w, par, (nlp.lbx, nlp.ubx, nlp.lbg, nlp.ubg))
         if not isinstance(law, str):
             # the cost terms move with the plan to first order, like the plan itself (exact ones would cost the

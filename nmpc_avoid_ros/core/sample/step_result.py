@@ -124,6 +124,10 @@ class Plan:
     #: with `terminal: set`, the plan continued after x(N) by the local controller kappa (core/nlp/terminal.py
     #: ShiftedTail.rollout): inputs [K, m] and the states x(N+1..N+K) [K, n]; None: it rests at (u_a, x_a)
     tail: tuple[np.ndarray, np.ndarray] | None = None
+    #: the slack variables as its solver left them (id of the NLP that solved it, values in that NLP's order), or
+    #: None: a law rebuilds them as max(0, depth), which misses the solver's by its tolerance, and with mu = 1e8 a
+    #: slack off by 5e-9 moves the cost's gradient by 1 (core/sample/feedback.py)
+    slacks: tuple[int, np.ndarray] | None = None
 
     def shifted(self, by: int) -> tuple[np.ndarray, np.ndarray]:
         """The plan seen `by` >= 0 samples later: (inputs [N, m]: u(by..N-1), then the tail's, then u_a; states
