@@ -115,8 +115,8 @@ class ControllerSettings:
     solver: str = setting("ipopt", "NLP solver path (simulate --solver list describes them)", choices=SOLVERS)
     codegen: bool = setting(False, "generate the solver's functions as C, compile them (cc) and cache the library "
                                    "by problem hash")
-    cache_dir: str = setting("", "folder of compiled solvers; empty: $NMPC_AVOID_ROS_CACHE, else "
-                                 "~/.cache/nmpc_avoid_ros")
+    cache_dir: str = setting("", "folder of compiled solvers and the feedback laws' saved derivatives; empty: "
+                                 "$NMPC_AVOID_ROS_CACHE, else ~/.cache/nmpc_avoid_ros")
     codegen_background: bool = setting(
         False, "with codegen, a library missing from the cache (a first start) compiles in a background process while "
                "the same solvers run interpreted (slower solves, but commands from the first sample, not after a "
