@@ -203,3 +203,23 @@ def test_a_later_nlps_law_is_built_by_a_thread_and_served_once_there(tmp_path, m
     law = laws.prepare(nlp, prepared.plan, prepared.law.par)
     assert not isinstance(law, str), law
     assert np.allclose(law.dw, prepared.law.dw, atol=1e-9)
+
+
+def test_a_later_law_that_fails_to_build_is_said_and_its_plans_search(monkeypatch, caplog):
+    from nmpc_avoid_ros.core.sample import feedback
+
+    controller, _, _ = prepared_controller("paper", steps=3)
+    prepared = controller.prepared
+    assert prepared is not None and prepared.law is not None
+
+    def broken(*args):
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(feedback, "KktSensitivity", broken)
+    with caplog.at_level("WARNING", logger=feedback.__name__):
+        laws = FeedbackLaws([], None, True, later=[prepared.nlp])
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline and not caplog.records:
+            time.sleep(0.02)
+    assert "no feedback law for the NLP of horizon" in caplog.text and "No space left" in caplog.text
+    assert "not built yet" in laws.prepare(prepared.nlp, prepared.plan, prepared.law.par)

@@ -21,6 +21,7 @@ config: commands within 1e-10 of a full solve at the same state; docs/design.md)
 from __future__ import annotations
 
 import functools
+import logging
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -37,6 +38,8 @@ from ..nlp.sensitivity import MULTIPLIER_TOLERANCE, FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
 from .status import FeedbackOutcome
 from .step_result import Plan
+
+log = logging.getLogger(__name__)
 
 #: the solver status of a sample its prepared plan answered: no solver ran in it (its preparation's did)
 ANSWERED_STATUS = "feedback"
@@ -79,7 +82,8 @@ class Prepared:
 class FeedbackLaws:
     """The KKT sensitivity of each NLP given (the controller gives its regular one and its tiers) and its answer: one
     CasADi Function (answer_function) that moves a prepared plan by its law and checks it, bound to the law once
-    when it is prepared; all built in the constructor (core/nlp/sensitivity.py)."""
+    when it is prepared; all built in the constructor, the `later` ones possibly by a thread (core/nlp/sensitivity.py).
+    """
 
     def __init__(self, nlps: list[NlpBase], compiled_in: Path | None = None, background: bool = False,
                  later: Sequence[NlpBase] = (), derivatives_in: Path | None = None) -> None:
@@ -98,13 +102,19 @@ class FeedbackLaws:
         if later and background:
             # CasADi's symbolic work releases the interpreter lock: the samples go on meanwhile (measured: the
             # main thread's longest wait 3 ms during a 1.2 s Jacobian)
-            threading.Thread(target=self._add_all, args=(list(later),), daemon=True, name="feedback-laws").start()
+            threading.Thread(target=self._add_later, args=(list(later),), daemon=True, name="feedback-laws").start()
         else:
-            self._add_all(later)
+            for nlp in later:
+                self._add(nlp)
 
-    def _add_all(self, nlps: Sequence[NlpBase]) -> None:
+    def _add_later(self, nlps: Sequence[NlpBase]) -> None:
+        """The `later` laws, on a thread: one that fails leaves its NLP's plans without a law (they search), said."""
         for nlp in nlps:
-            self._add(nlp)
+            try:
+                self._add(nlp)
+            except Exception as error:  # noqa: BLE001 - a thread's exception would vanish: say it, serve on
+                log.warning(f"no feedback law for the NLP of horizon {nlp.layout.horizon} (its samples search): "
+                            f"{type(error).__name__}: {error}")
 
     def _add(self, nlp: NlpBase) -> None:
         """Build the law of `nlp` and its answer; the sensitivity goes in last, as `prepare` looks for it first."""
