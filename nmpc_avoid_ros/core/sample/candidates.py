@@ -251,12 +251,13 @@ class EscapeGuesses:
         return guesses
 
     def guesses(self, x: np.ndarray, y_a: np.ndarray, y_t: np.ndarray, par: np.ndarray,
-                regions: Sequence[Region]) -> list[Guess]:
+                regions: Sequence[Region], beyond: list[np.ndarray] | None = None) -> list[Guess]:
         """Candidate guesses: y_a beyond each blocking stretch, straight and around each region on either side;
-        with no blocking stretch, a car-like model parked short of the target: the manoeuvres to it."""
+        with no blocking stretch, a car-like model parked short of the target: the manoeuvres to it. `beyond`: what
+        `beyond_blocks` gave for y_a towards y_t's aim, if the caller has it (else computed here)."""
         out = []
         aim = self.aim(y_t)
-        beyond = self.beyond_blocks(y_a, aim, par)
+        beyond = self.beyond_blocks(y_a, aim, par) if beyond is None else beyond
         if not beyond and self.parked_short(y_a, aim):
             return self.manoeuvre_guesses(x, aim)
         for i, y_new in enumerate(beyond):

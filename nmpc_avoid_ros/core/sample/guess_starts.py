@@ -4,6 +4,7 @@ what the escape admits (core/sample/candidates.py makes the guesses; core/sample
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 import numpy as np
 
@@ -11,8 +12,10 @@ from ..nlp.search import Candidate, Start
 from ..nlp.tracking import NlpBase
 from .candidates import MANOEUVRE, STALL_TOLERANCE, Guess
 
+T = TypeVar("T")  # a guess, or a passage's turn (core/sample/passage.py)
 
-def guess_batch(guesses: Sequence[Guess], start: int, per_sample: int) -> tuple[list[Guess], int]:
+
+def guess_batch(guesses: Sequence[T], start: int, per_sample: int) -> tuple[list[T], int]:
     """The guesses to solve this sample: `per_sample` of them from index `start` (all if per_sample is 0),
     and how many remain after them. A start past the end (the list shrank) starts over."""
     if per_sample <= 0:

@@ -31,6 +31,7 @@ again.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -47,8 +48,16 @@ from .trajectory_guess import TrajectorySearch
 
 #: a long plan enters the mode only if its offset cost is below this times the short plan's
 PASSAGE_GAIN = 0.9
-#: the turns of the trajectory search and of its guess's solve in the passage's list of guesses
-SEARCH, SOLVE = "trajectory_search", "trajectory_solve"
+
+
+@dataclass(frozen=True)
+class Turn:
+    """A turn in the passage's list of guesses that is not a Guess: the trajectory search, or its guess's solve."""
+
+    name: str
+
+
+SEARCH, SOLVE = Turn("trajectory_search"), Turn("trajectory_solve")
 #: the mode ends when the long plan stays this close (inf-norm, state units) to its x_a from stage N - 1 on
 PASSAGE_REST = 5e-2
 
@@ -99,13 +108,14 @@ class Passage:
         assert self.nlp is not None and self.guesses is not None and self.search is not None
         y_a = base.nlp.layout.y_a(base.w).copy()
         beyond = self.guesses.beyond_blocks(y_a, self.guesses.aim(y_t), par)
-        guesses: list = [SEARCH, SOLVE] if beyond else []
-        guesses += self.guesses.guesses(x, y_a, y_t, par, regions)
+        guesses: list[Guess | Turn] = [SEARCH, SOLVE] if beyond else []
+        guesses += self.guesses.guesses(x, y_a, y_t, par, regions, beyond)
         batch, rest = guess_batch(guesses, next_guess, per_sample)
         if SEARCH in batch:
             found = self.search.find(x, y_a, beyond[0], par, end)
-        batch = [found if guess is SOLVE else guess for guess in batch if guess is not SEARCH]
-        starts = [guess_start(self.nlp, x, par, guess, f"passage:{guess.label}") for guess in batch if guess]
+        chosen = [found if guess is SOLVE else guess for guess in batch if guess is not SEARCH]
+        starts = [guess_start(self.nlp, x, par, guess, f"passage:{guess.label}") for guess in chosen
+                  if isinstance(guess, Guess)]
         return starts, len(guesses) - rest, rest, found
 
     def admit(self, base: Candidate, par: np.ndarray) -> Callable[[Candidate], str]:
