@@ -26,9 +26,11 @@ nonlinear problem at the new parameters (core/sample/feedback.py). Elsewhere the
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import tempfile
+import threading
 import time as clock
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,11 +59,12 @@ class KktSensitivity:
 
     `columns` are the parameters the law follows (indices into the NLP's parameter vector). With a `cache`
     folder the two Functions are read from it when this problem and these columns were built before, else
-    built and saved there: the symbolic derivatives are most of the build (the passage NLP of the live van
-    der Pol config: 2.5 s to build, 0.27 s to load; files of 15-20 MB).
+    built and saved there (by a thread with `background`): the symbolic derivatives are most of the build (the
+    passage NLP of the live van der Pol config: 2.5 s to build, 0.27 s to load; files of 15-20 MB).
     """
 
-    def __init__(self, problem: dict, columns: np.ndarray, cache: Path | None = None) -> None:
+    def __init__(self, problem: dict, columns: np.ndarray, cache: Path | None = None, background: bool = False
+                 ) -> None:
         self.columns = np.asarray(columns, dtype=int)
         paths = None if cache is None else _cached_paths(problem, self.columns, cache)
         if paths is not None and all(path.exists() for path in paths):
@@ -72,8 +75,11 @@ class KktSensitivity:
                 pass
         self._first, self._second = _kkt_functions(problem, self.columns)
         if paths is not None:
-            for function, path in zip((self._first, self._second), paths):
-                _save_atomically(function, path)
+            save = functools.partial(_save_all, (self._first, self._second), paths)
+            if background:  # 0.1-0.3 s of writing each: a first start does not wait for it
+                threading.Thread(target=save, daemon=True, name="kkt-save").start()
+            else:
+                save()
 
     def law(self, w: np.ndarray, par: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
             ) -> FeedbackLaw | str:
@@ -159,6 +165,11 @@ def _cached_paths(problem: dict, columns: np.ndarray, folder: Path) -> tuple[Pat
     return folder / f"kkt_{key}_first.casadi", folder / f"kkt_{key}_second.casadi"
 
 
+def _save_all(functions: tuple[ca.Function, ...], paths: tuple[Path, ...]) -> None:
+    for function, path in zip(functions, paths):
+        _save_atomically(function, path)
+
+
 def _save_atomically(function: ca.Function, path: Path) -> None:
     """Save `function` to `path` whole or not at all (processes that start together read a complete file);
     a cache that cannot be written is no error: the next start builds again."""
@@ -169,6 +180,7 @@ def _save_atomically(function: ca.Function, path: Path) -> None:
         os.close(handle)
         partial = Path(name)
         function.save(name)
+        os.chmod(name, 0o644)  # as the compiled solvers beside it (mkstemp's is 0600)
         os.replace(partial, path)
     except (OSError, RuntimeError):
         if partial is not None:

@@ -123,7 +123,7 @@ class FeedbackLaws:
         # region set is searched)
         commands = command_index(count, size, nlp.layout.m, bool(nlp.settings.input_rate_max))
         followed = np.concatenate([np.arange(n), commands, count - size + nlp.slot_layout.time_offsets])
-        sensitivity = KktSensitivity(nlp.problem, followed, self._derivatives_in)
+        sensitivity = KktSensitivity(nlp.problem, followed, self._derivatives_in, self._background)
         w, p = nlp.problem["x"], nlp.problem["p"]
         terms = ca.vertcat(*nlp.terms.function(w, p))  # V_o, V_a, tracking
         self._cost_jacobian[id(nlp)] = ca.Function("cost_jacobian", [w, p], [terms, ca.jacobian(terms, w),
