@@ -8,6 +8,7 @@ import threading
 import time
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -223,3 +224,22 @@ def test_a_later_law_that_fails_to_build_is_said_and_its_plans_search(monkeypatc
             time.sleep(0.02)
     assert "no feedback law for the NLP of horizon" in caplog.text and "No space left" in caplog.text
     assert "not built yet" in laws.prepare(prepared.nlp, prepared.plan, prepared.law.par)
+
+
+def test_a_save_cut_short_by_the_process_end_leaves_no_half_written_file(tmp_path):
+    """A save on a daemon thread can be running when the process ends: its partial file goes at exit (atexit), and
+    its own replace then fails quietly."""
+    from nmpc_avoid_ros.core.nlp import sensitivity
+
+    partial = tmp_path / "tmpabc.part"
+    partial.write_bytes(b"half a function")
+    sensitivity._SAVING.add(partial)
+    try:
+        sensitivity._remove_unfinished_saves()
+    finally:
+        sensitivity._SAVING.discard(partial)
+    assert not partial.exists()
+    function = ca.Function("f", [ca.SX.sym("x")], [ca.SX.sym("x") * 0])
+    sensitivity._save_atomically(function, tmp_path / "missing_folder" / "f.casadi")  # creates its folder
+    assert ca.Function.load(str(tmp_path / "missing_folder" / "f.casadi")).name() == "f"
+    assert oct((tmp_path / "missing_folder" / "f.casadi").stat().st_mode & 0o777) == "0o644"

@@ -26,6 +26,7 @@ nonlinear problem at the new parameters (core/sample/feedback.py). Elsewhere the
 
 from __future__ import annotations
 
+import atexit
 import functools
 import hashlib
 import os
@@ -179,10 +180,25 @@ def _save_atomically(function: ca.Function, path: Path) -> None:
         handle, name = tempfile.mkstemp(dir=path.parent, suffix=".part")
         os.close(handle)
         partial = Path(name)
+        _SAVING.add(partial)
         function.save(name)
         os.chmod(name, 0o644)  # as the compiled solvers beside it (mkstemp's is 0600)
         os.replace(partial, path)
     except (OSError, RuntimeError):
+        if partial is not None:
+            partial.unlink(missing_ok=True)
+    finally:
+        _SAVING.discard(partial)
+
+
+#: files a save is writing now: a process that ends meanwhile (a save on a daemon thread) removes them, so the cache
+#: keeps no half-written file (the save's own os.replace then fails, and is no error)
+_SAVING: set[Path | None] = set()
+
+
+@atexit.register
+def _remove_unfinished_saves() -> None:
+    for partial in list(_SAVING):
         if partial is not None:
             partial.unlink(missing_ok=True)
 
