@@ -77,10 +77,17 @@ def cache_dir(setting: str = "") -> Path:
 
 def structure_hash(plugin: str, nlp: dict) -> str:
     """SHA-256 (hex, 16 chars) of the CasADi version, the plugin, the compiler flags and the symbolic problem."""
+    return problem_digest(nlp, plugin, " ".join(COMPILE_FLAGS))
+
+
+def problem_digest(nlp: dict, *parts: str | bytes) -> str:
+    """SHA-256 (hex, 16 chars) of the CasADi version, `parts` and the serialised symbolic problem (w, p) -> (f, g) of
+    `nlp` (its keys x, p, f, g): the name of what a cache keeps for that problem (a solver library, the feedback law's
+    derivatives, core/nlp/sensitivity.py)."""
     problem = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
     digest = hashlib.sha256()
-    for part in (ca.__version__, plugin, " ".join(COMPILE_FLAGS), problem.serialize()):
-        digest.update(part.encode())
+    for part in (ca.__version__, *parts, problem.serialize()):
+        digest.update(part.encode() if isinstance(part, str) else part)
     return digest.hexdigest()[:16]
 
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import atexit
 import functools
-import hashlib
 import os
 import tempfile
 import threading
@@ -40,6 +39,8 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+from .codegen import problem_digest
 
 #: a constraint row or bound this close to its bound (scaled by 1 + |bound|) counts as active
 ACTIVE_TOLERANCE = 1e-6
@@ -156,13 +157,9 @@ def _kkt_functions(problem: dict, columns: np.ndarray) -> tuple[ca.Function, ca.
 
 
 def _cached_paths(problem: dict, columns: np.ndarray, folder: Path) -> tuple[Path, Path]:
-    """Where the cache holds the two Functions of `problem` and `columns`: named by a SHA-256 of the CasADi version,
-    the serialised problem (w, p) -> (f, g) and the columns (as core/nlp/codegen.py names compiled solvers)."""
-    digest = hashlib.sha256()
-    problem_function = ca.Function("nlp", [problem["x"], problem["p"]], [problem["f"], problem["g"]])
-    for part in (ca.__version__.encode(), problem_function.serialize().encode(), columns.astype(np.int64).tobytes()):
-        digest.update(part)
-    key = digest.hexdigest()[:16]
+    """Where the cache holds the two Functions of `problem` and `columns`, named as compiled solvers are
+    (core/nlp/codegen.py `problem_digest`, with the columns)."""
+    key = problem_digest(problem, columns.astype(np.int64).tobytes())
     return folder / f"kkt_{key}_first.casadi", folder / f"kkt_{key}_second.casadi"
 
 
@@ -188,19 +185,19 @@ def _save_atomically(function: ca.Function, path: Path) -> None:
         if partial is not None:
             partial.unlink(missing_ok=True)
     finally:
-        _SAVING.discard(partial)
+        if partial is not None:
+            _SAVING.discard(partial)
 
 
 #: files a save is writing now: a process that ends meanwhile (a save on a daemon thread) removes them, so the cache
 #: keeps no half-written file (the save's own os.replace then fails, and is no error)
-_SAVING: set[Path | None] = set()
+_SAVING: set[Path] = set()
 
 
 @atexit.register
 def _remove_unfinished_saves() -> None:
     for partial in list(_SAVING):
-        if partial is not None:
-            partial.unlink(missing_ok=True)
+        partial.unlink(missing_ok=True)
 
 
 def _factor(hessian: sp.csc_matrix, jacobian: sp.csr_matrix) -> spla.SuperLU | str:
