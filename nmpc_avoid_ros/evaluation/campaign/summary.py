@@ -48,6 +48,9 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     unreach = [r for r in records if not r["reachable"]]
     short = [r for r in records if r["stop_short"]]
     pairs = sum(r["rf_pairs"] for r in records)
+    # each run's state-to-command times [K] (absent from campaigns scored before they were recorded)
+    commands = [r["trace"]["command_ms"] for r in records] if all(
+        "command_ms" in r.get("trace", {}) for r in records) else None
     worst = max(finished, key=lambda r: r["max_penetration"])
     feasible_start = [r for r in finished if r["x0_in_feasible_set"] == "feasible"]
     causes: dict[str, int] = {}
@@ -111,11 +114,9 @@ def summarize(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "runs_with_starts_cut_by_time": sum(r.get("starts_cut_by_time", 0) > 0 for r in records),
         "solve_ms": time_stats(np.concatenate([r["trace"]["solve_ms"] for r in records]))
         if all("trace" in r for r in records) else None,
-        # the state-to-command part, pooled over the samples after each run's first (warm) and over all
-        "command_ms": time_stats(np.concatenate([r["trace"]["command_ms"] for r in records]))
-        if all("command_ms" in r.get("trace", {}) for r in records) else None,
-        "command_ms_warm": time_stats(np.concatenate([r["trace"]["command_ms"][1:] for r in records]))
-        if all("command_ms" in r.get("trace", {}) for r in records) else None,
+        # the state-to-command part, pooled over all samples and over those after each run's first (warm)
+        "command_ms": time_stats(np.concatenate(commands)) if commands else None,
+        "command_ms_warm": time_stats(np.concatenate([c[1:] for c in commands])) if commands else None,
         "runs_with_fallback": sum(r["fallbacks"] > 0 for r in records),
         "runs_with_solver_failure": sum(r["solver_failures"] > 0 for r in records),
         "first_solve_failed": sum(not r["initial_feasible"] for r in records),
