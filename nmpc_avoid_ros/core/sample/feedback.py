@@ -137,9 +137,13 @@ class FeedbackLaws:
         its law at its first call)."""
         self._answer[key] = _Answer(answer)
 
+    def built(self, nlp: NlpBase) -> bool:
+        """`nlp` has its law's derivatives and answer (a `later` one: once its thread built them)."""
+        return id(nlp) in self._sensitivity
+
     def prepare(self, nlp: NlpBase, plan: Plan, par: np.ndarray) -> FeedbackLaw | str:
         """The law of `plan` (solved at par) in `nlp`'s layout, or why there is none; a law is bound to the answer."""
-        if id(nlp) not in self._sensitivity:
+        if not self.built(nlp):
             return "its law not built yet (the passage mode's long NLP, built by a thread in the background)"
         layout = nlp.layout
         rest = None if layout.closed_form else np.concatenate([plan.x_a, plan.u_a])
