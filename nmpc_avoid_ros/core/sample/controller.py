@@ -113,12 +113,13 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         # the regular NLP solved on the smallest ellipse tier that holds the regions (core/nlp/tiers.py)
         self.tiered = TieredNlp(self.settings, self.model, self.nlp, make_nlp)
         self.tiered.set_regions(self._regions)  # no regions yet: the smallest tier
-        #: the feedback laws of prepared plans (core/sample/feedback.py, `feedback`): the regular NLP's and its tiers',
-        #: on the tier that holds the regions (its feasibility test 5.5 against 21 us on the paper's run), and the
-        #: passage NLP's (its samples searched before their command, 25-50 ms; built by a thread with background)
-        s, cache, later = self.settings, cache_dir(self.settings.cache_dir), [long_nlp] if long_nlp is not None else []
-        self.feedback_laws = FeedbackLaws([self.nlp, *(tier for _, tier in self.tiered.tiers)], cache if s.codegen
-                                          else None, s.codegen_background, later, cache) if s.feedback else None
+        #: the feedback laws of prepared plans (core/sample/feedback.py, `feedback`): the regular NLP's and its tiers'
+        #: (a plan's on the tier holding the regions), and the passage NLP's, by a thread with codegen_background
+        s, cache = self.settings, cache_dir(self.settings.cache_dir)
+        later = [long_nlp] if long_nlp is not None else []
+        self.feedback_laws = FeedbackLaws([self.nlp, *(tier for _, tier in self.tiered.tiers)],
+                                          cache if s.codegen else None, s.codegen_background, later,
+                                          derivatives_in=cache) if s.feedback else None
         self._input_lo = np.asarray(self.settings.input_min, float)
         self._input_hi = np.asarray(self.settings.input_max, float)
         #: y_t -> its nearest reachable output y* (core/nlp/projection.py): the target the NLP tracks
