@@ -21,7 +21,11 @@ from test_launch_files import Resolver, load_launch, nodes_of
 from nmpc_avoid_ros.core.loop.world import OCCUPIED, load_world
 from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 
-pytestmark = [pytest.mark.dds, pytest.mark.slow]
+# serial: clearance in real time, alone on the machine. In a CI run beside the other DDS tests the unicycle's body came
+# 0.204 m from a pillar cell's centre (into the half cell) and then stood there (a fallback that held it inside: now
+# mended, test_escape_fallback's pillar test). Beside two or three busy loops here, 17 of 18 runs kept 0.282-0.444 m
+# and one came to 0.202: an unpredicted delay of a starved machine, not a verdict on the controller alone
+pytestmark = [pytest.mark.dds, pytest.mark.slow, pytest.mark.serial]
 
 GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's target
 REACH_WITHIN = 60.0  # s of real time (the room took 13-15 s here)
