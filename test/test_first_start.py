@@ -106,3 +106,26 @@ def test_a_failed_background_compile_keeps_the_interpreted_solver(tmp_path, monk
     assert background.current(nlp.solver) is nlp.solver and not list(tmp_path.glob("*.so"))
     assert any("failed: the interpreted solver stays in use" in r.getMessage() for r in caplog.records)
     assert [p for p in tmp_path.iterdir()] == []  # the failed build and its job file are gone
+
+
+def test_a_compiler_killed_mid_build_leaves_its_temporary_files_nowhere(tmp_path, monkeypatch):
+    """gcc writes its assembler file to $TMPDIR (ccXXXXXX.s) and removes it on exit, not when it is killed
+    (SIGKILL: the compile of a stopping controller, core/nlp/codegen.py `_compile`). The compiler's TMPDIR is the
+    build's own temporary folder, removed with it; /tmp had gathered 102 such files here."""
+    import casadi as ca
+
+    from nmpc_avoid_ros.core.errors import ConfigError
+    from nmpc_avoid_ros.core.nlp.codegen import compiled_function
+
+    made = tmp_path / "made.txt"
+    compiler = tmp_path / "cc"  # writes a temporary file as gcc does, then dies as a killed one
+    compiler.write_text(f'#!/bin/sh\nmktemp > {made}\nkill -9 $$\n')
+    compiler.chmod(0o755)
+    monkeypatch.setenv("CC", str(compiler))
+    x = ca.SX.sym("x")
+    cache = tmp_path / "cache"
+    with pytest.raises(ConfigError, match="failed"):
+        compiled_function(ca.Function("square", [x], [x * x]), cache)
+    left = made.read_text().strip()
+    assert left.startswith(str(cache)), left  # written in the build's folder, not /tmp
+    assert not (cache / left).exists() and list(cache.iterdir()) == []

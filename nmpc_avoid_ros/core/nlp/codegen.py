@@ -198,9 +198,12 @@ def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Functi
 
 def _compile(compiler: str, source: Path, built: Path, own_group: bool) -> tuple[int, str]:
     """Run the compiler; (exit status, stderr). An exception while it runs (SystemExit from a signal
-    handler, KeyboardInterrupt) kills it, with its group when it has its own (the driver's cc1 too)."""
+    handler, KeyboardInterrupt) kills it, with its group when it has its own (the driver's cc1 too).
+    Its temporary files go to the source's folder (TMPDIR), removed with it: a compiler killed mid-build
+    leaves its assembler file behind (gcc's ccXXXXXX.s), and in /tmp 102 of them had gathered here."""
+    env = {**os.environ, "TMPDIR": str(source.parent)}
     proc = subprocess.Popen([compiler, *COMPILE_FLAGS, str(source), "-o", str(built)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=own_group)
+                            stderr=subprocess.PIPE, text=True, start_new_session=own_group, env=env)
     try:
         _, stderr = proc.communicate()
     finally:
