@@ -18,7 +18,7 @@ import numpy as np
 
 from nmpc_avoid_ros.core.config.settings import default_config_path, load_params_file
 from nmpc_avoid_ros.core.loop.closed_loop import ClosedLoopRun, run_closed_loop
-from nmpc_avoid_ros.core.sample import controller as controller_module
+from nmpc_avoid_ros.core.sample import preparation
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 from nmpc_avoid_ros.evaluation.campaign.scenarios import families, make_specs, settings_from_params
 from nmpc_avoid_ros.evaluation.campaign.scoring import STOPS
@@ -40,9 +40,9 @@ def run(controller: NmpcController, spec: dict, schedule, steps: int) -> ClosedL
 
 
 def test_reset_controller_matches_a_fresh_one_bit_for_bit(monkeypatch):
-    # the preparation's own wall-clock rule (no law after a search that took half the sample) unbound too: the one
+    # the preparation's own wall-clock rule (no law after a search that took most of the sample) unbound too: the one
     # clock left in these loops, the probable cause of a failure in a loaded parallel run (not reproduced alone)
-    monkeypatch.setattr(controller_module, "LAW_TIME_SHARE", math.inf)
+    monkeypatch.setattr(preparation, "LAW_TIME_SHARE", math.inf)
     family = families({"vdp": default_config_path().parent / "van_der_pol_live.yaml"})["vdp"]
     settings = settings_from_params(load_params_file(family.config).section("controller"), max_solve_time=UNBOUND)
     specs = make_specs(family, max(SCENE_A, SCENE_B) + 1, 0, settings, "continuous")

@@ -124,6 +124,25 @@ def test_a_new_target_or_a_far_state_is_searched():
     assert str(far.status) in ("ok", "unconverged")
 
 
+def test_a_search_cut_at_the_command_budget_goes_on_in_the_preparation_and_the_next_sample_is_answered():
+    """`command_budget`: a sample its law does not answer searches at most that long before its command (here too
+    short for any solve: the fallback); the preparation after the command searches with the whole budget from
+    where the fallback leads, and the sample after it is answered by that plan's law, as a searched one would be."""
+    reference = controller_of("paper", False)
+    controller, plant, x = prepared_controller(steps=4, beside=reference, command_budget=1e-4)
+    assert controller.sample_budget() == 1e-4
+    assert controller.sample_budget(before_command=False) == controller.settings.max_solve_time
+    cut = controller.step(x, [4.0])  # a new target: the law does not hold, the sample searches
+    reference.step(x, [4.0])
+    assert cut.feedback is FeedbackOutcome.INPUTS_CHANGED and str(cut.status) == "fallback_shift", cut.status
+    x = plant.advance(x, cut.u, LIVE.sample_time)
+    prepared = controller.prepare()
+    assert prepared is not None and prepared.law is not None, prepared
+    answered, searched = controller.step(x, [4.0]), reference.step(x, [4.0])
+    assert answered.feedback is FeedbackOutcome.ANSWERED
+    assert np.max(np.abs(answered.u - searched.u)) < 1e-5
+
+
 @pytest.mark.slow
 def test_a_moving_region_is_followed_by_the_law():
     walker = Ellipse((1.0, 1.8), (0.4, 0.3), 0.0, velocity=(0.05, 0.0), stamp=0.0)

@@ -41,7 +41,7 @@ def test_every_field_is_declared_and_the_derived_sets_follow_the_declarations():
                               "predict_obstacles", "region_margin", "mismatch_gain", "mismatch_window",
                               "max_mismatch_margin", "max_obstacle_speed", "max_obstacle_stamp_skew",
                               "certificate_tolerance", "certificate_error_after", "escape_guesses_per_sample",
-                              "solve_domain_margin", "input_delay", "footprint_radius", "footprint"}
+                              "solve_domain_margin", "input_delay", "footprint_radius", "footprint", "command_budget"}
     # the solver budgets are options of the CasADi solver Function, fixed at construction
     assert not {"max_iterations", "max_solve_time", "tolerance", "acceptable_tolerance"} & RUNTIME_FIELDS
     assert NODE_ONLY_PARAMETERS == set(NODE_SETTINGS) | {"use_sim_time"}

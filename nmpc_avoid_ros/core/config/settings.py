@@ -142,6 +142,11 @@ class ControllerSettings:
     max_solve_time: float = setting(2.0, "solver wall-time budget per sample, s (enforced by IPOPT; the fast paths "
                                          "are bounded by max_iterations); a solver option, fixed at construction",
                                     low=0.0, low_open=True)
+    command_budget: float = setting(
+        0.0, "with `feedback`: a sample its prepared plan does not answer searches at most this long (s) before its "
+             "command (then the budget-cut plan if feasible, else the fallback), and the preparation after the command "
+             "goes on with the whole max_solve_time for the sample to come; 0: max_solve_time before the command. Not "
+             "the first sample (no command in force yet)", runtime=True, low=0.0)
     solve_domain_margin: float = setting(
         1.0, "a state further outside the state box than this many box widths (in any bounded coordinate) gets no "
              "solver call: the NLP's x(1) in the box is out of reach from there, and FATROP may not return on such "

@@ -15,7 +15,8 @@
 * guard: a plan that still predicts penetration gives way to the least-violating input.
 
 What carries over between samples is one SampleMemory (core/sample/memory.py); what the search did is the
-result's SearchReport. Run-time changes (regions, margins, settings) are core/sample/runtime_changes.py.
+result's SearchReport. Run-time changes (regions, margins, settings) are core/sample/runtime_changes.py; the
+preparation between samples and the feedback answer from its plan, core/sample/preparation.py.
 """
 
 from __future__ import annotations
@@ -41,25 +42,22 @@ from ..problem.regions import Region
 from .answers import SampleAnswers
 from .candidates import EscapeGuesses, Guess
 from .fallback import FallbackSelector
-from .feedback import ANSWERED_STATUS, FeedbackLaws, Prepared
+from .feedback import FeedbackLaws
 from .latency import LatencyPrediction
 from .memory import Sample, SampleMemory
 from .passage import Passage
+from .preparation import Preparation
 from .runtime_changes import RuntimeChanges
 from .search_phases import SearchPhases
-from .status import FeedbackOutcome, StepStatus
-from .step_result import Plan, StepResult, validate_vector
+from .status import FeedbackOutcome
+from .step_result import StepResult, validate_vector
 
 #: what a step may take beyond NmpcController.sample_budget(), s: the fallback's simulations and the
 #: result's bookkeeping after the recovery solve's limit (test/test_time_bound.py holds every step to it)
 TIME_BOUND_MARGIN = 0.05
 
 
-#: a preparation whose search took more than this share of the sample time builds no feedback law
-LAW_TIME_SHARE = 0.5
-
-
-class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
+class NmpcController(Preparation, SearchPhases, SampleAnswers, RuntimeChanges):
     """Avoidance-aware tracking NMPC (simplified scheme, paper section IV).
 
     The NLP is built once in the constructor; `step` only packs parameters and solves.
@@ -170,12 +168,18 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         _, low, high = self._domain
         return bool(np.all((x >= low) & (x <= high)))
 
-    def sample_budget(self) -> float:
+    def sample_budget(self, before_command: bool = True) -> float:
         """The next step's time bound, s: max_solve_time, x COLD_START_TIME_FACTOR for a cold start from the safe input
-        (none yet, or a fallback's), not under another command (the plant follows it); calls end by SEARCH_SHARE."""
-        mem = self.memory
+        (none yet, or a fallback's), not under another command (the plant follows it); calls end by SEARCH_SHARE.
+        With `feedback` and a command in force, a step's search before its command ends by `command_budget`;
+        `before_command` False: a preparation's (max_solve_time)."""
+        mem, s = self.memory, self.settings
+        if not before_command:
+            return s.max_solve_time
+        if self.feedback_laws is not None and s.command_budget > 0 and mem.command is not None:
+            return min(s.command_budget, s.max_solve_time)
         first = self._cold(mem) and (mem.command is None or np.array_equal(mem.command, self.fallback.safe_input))
-        return self.settings.max_solve_time * (COLD_START_TIME_FACTOR if first else 1.0)
+        return s.max_solve_time * (COLD_START_TIME_FACTOR if first else 1.0)
 
     def reset(self) -> None:
         """Forget everything carried between samples (the next step starts cold)."""
@@ -241,94 +245,6 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
                                     self.settings.sample_time - sample.delay,
                                     origin=(sample.measured, sample.measured_at, sample.command))
 
-    def _settle(self) -> None:
-        """What a sample answered by its prepared plan left for after its command (its command leaves first): the
-        mismatch measured at its state, the next expectation, and when its command left (`command_sent`)."""
-        last = self.memory.last
-        if last is None or last.settled:
-            return
-        last.settled = True
-        self._track_mismatch(last.measured, last.measured_at)
-        self._expect(last)
-        if last.sent_at is not None:
-            self.command_sent(last.sent_at)
-
-    @property
-    def prepared(self) -> Prepared | None:
-        """The plan prepared for the next sample (`prepare`), or None."""
-        return self.memory.prepared
-
-    def prepare(self, latency: float | None = None) -> Prepared | None:
-        """Between samples, after the last step's command left: solve the next sample ahead (`feedback` setting).
-
-        The next sample is expected one sample_time after the last, its state predicted `latency` + input_delay
-        s past its measurement (default: the last sample's delay), as `step` will with that latency. That state,
-        as the last plan predicts it, goes through the whole sample (the search, within `sample_budget()`); a
-        converged, clear plan is kept with its feedback law, and the next `step` answers from it when the law
-        holds (core/sample/feedback.py). Returns what was prepared; None with the setting off or nothing to
-        predict from (no step yet, or no plan applied)."""
-        mem, s = self.memory, self.settings
-        begin = clock.perf_counter()
-        self._settle()
-        last, plan = mem.last, mem.plan
-        if self.feedback_laws is None or last is None or plan is None or plan.age != 0 or mem.command is None:
-            return None
-        delay = last.delay if latency is None else self.latency.delay(latency, s.input_delay, mem.command)
-        x = self.latency.shift(plan.states[1], mem.command, delay - last.delay)
-        start = None if last.time is None else last.time + s.sample_time + delay - last.delay
-        sample = self._sample(x, last.y_t, start, begin, measured=x, delay=delay, command=mem.command)
-        if not (sample.in_domain and np.all(np.isfinite(x))):
-            return None
-        report, carry = SearchReport(), sample.carry
-        best = self._search_within(sample, report)[0]
-        if best is None:
-            mem.advance(carry)  # what the search found (escape and passage guesses tried, a hand-back)
-            return None
-        self._apply(sample, best, report)
-        nlp, par = self.tiered.holding(self._active(carry), sample.par)
-        # an unconverged plan (e.g. FATROP stopped at an acceptable point) gets a law where its KKT residual allows
-        # (with mu = 0 nothing is avoided: a penetrating plan is the problem's answer, as the guard holds)
-        # the law is built after a search that left half a sample at least (it takes ~2-30 ms: the next sample
-        # must not wait for it; without it that sample searches, warm-started from this plan)
-        if clock.perf_counter() - begin > LAW_TIME_SHARE * s.sample_time:
-            law = "no time left in the sample for the law"
-        elif best.clear or s.mu == 0:
-            law = self.feedback_laws.prepare(nlp, carry.plan, par)
-        else:
-            law = "the prepared plan penetrates"
-        carry.plan.age = -1  # the plan of the sample to come
-        ready = not isinstance(law, str)
-        carry.prepared = Prepared(carry.plan, nlp, law if ready else None, "" if ready else law, x, start, delay,
-                                  clock.perf_counter() - begin, report)
-        mem.advance(carry)
-        return mem.prepared
-
-    def _feedback(self, sample: Sample, prepared: Prepared) -> StepResult | None:
-        """The prepared plan moved to this sample's state by its law, as the result; None (the sample searches)
-        where the law does not hold (core/sample/feedback.py), with why in `sample.feedback`."""
-        assert self.feedback_laws is not None
-        s = self.settings
-        nlp, par = self.tiered.holding(self._active(sample.carry), sample.par)
-        if prepared.law is not None and nlp is not prepared.nlp:  # the regions moved to another tier, a mode changed
-            sample.feedback = FeedbackOutcome.INPUTS_CHANGED
-            return None
-        moved, outcome = self.feedback_laws.answer(prepared, par, s.feasibility_tolerance,
-                                                   sample.allowance if s.mu > 0 else math.inf) \
-            if sample.in_domain else (None, FeedbackOutcome.INFEASIBLE)
-        sample.feedback = outcome
-        if moved is None:
-            return None
-        plan = prepared.plan
-        U, X, y_a, _ = nlp.layout.split_w(moved.w)
-        sample.carry.plan = self._continued(Plan(U, np.vstack([sample.x, X]), y_a, moved.x_a, moved.u_a,
-                                                 plan.lam_x, plan.lam_g, 0, moved.costs))
-        result = self._result(sample.carry.plan, sample.x, 0, StepStatus.OK, ANSWERED_STATUS, 0, False)
-        result.horizon, result.feedback = nlp.layout.horizon, outcome
-        # what was searched for this sample, ahead of it (escapes and passage included: the campaign counts them)
-        result.search = prepared.report or SearchReport(phase="feedback", kept="prepared")
-        result.feedback_time = sample.seconds = clock.perf_counter() - sample.begin
-        return result
-
     def _solve(self, sample: Sample) -> StepResult:
         """The sample searched: its plan applied and guarded, or the fallback."""
         report = SearchReport()
@@ -382,11 +298,11 @@ class NmpcController(SearchPhases, SampleAnswers, RuntimeChanges):
         return sample
 
     def _sample(self, x: np.ndarray, y_t: np.ndarray, start: float | None, begin: float, *, measured: np.ndarray,
-                delay: float, command: np.ndarray | None) -> Sample:
+                delay: float, command: np.ndarray | None, before_command: bool = True) -> Sample:
         """The sample planned from x [n] at `start` (s) towards the tracked target y_t [p], begun at `begin`
         (time.perf_counter): its parameters and the deadline of its solver calls."""
         self.tiered.set_time(start, self.settings.predict_obstacles)
-        budget, par = self.sample_budget(), self.parameters(x, y_t, start)
+        budget, par = self.sample_budget(before_command), self.parameters(x, y_t, start)
         return Sample(x, y_t, par, start, begin + SEARCH_SHARE * budget, begin + budget, self.in_solve_domain(x),
                       measured=measured, delay=delay, command=command, begin=begin,
                       allowance=self.fallback.allowance(x, command, par), carry=self.memory.carry())
