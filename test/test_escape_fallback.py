@@ -355,3 +355,37 @@ def test_a_unicycle_whose_body_touches_a_pillar_turns_away_and_reaches_its_goal(
     assert len(out) and out[0] <= 10, distance  # out of the planned band within 2 s
     assert distance.min() >= distance[0] - 0.015, distance  # measured 0.011 m closer while it turns
     assert np.hypot(*(run.x[-1, :2] - [3.0, 2.0])) <= 0.15, run.x[-1]
+
+
+#: campaign robot-0199 (seed 0, config/mobile_robot_live.yaml): the target lies inside an ellipse; y_a slid along its
+#: rim and rested at (5.76, 6.19), 1.47 from the best admissible output (7.01, 6.95) the campaign computes, with no
+#: stretch of the segment to the target's far side to pass (it ends in the next ellipse): no escape was tried
+ROBOT_0199 = {"target": [6.141711229554431, 7.213940843037509], "rest": [5.760927806, 6.186718225],
+              "best": [7.014, 6.952],
+              "ellipses": [((5.6379331667806145, 7.009863696576955), (1.9833208392865842, 0.691545653795471),
+                            2.7028100501526393),
+                           ((5.669812534975128, 8.17160428965466), (1.7753062072296673, 1.8478745957062617),
+                            0.09411224837137927),
+                           ((6.027725348336729, 2.2327155008825237), (1.681898743056664, 1.1756424941680885),
+                            1.2953530440764653)]}
+
+
+def test_a_stall_on_the_rim_of_a_region_over_the_target_aims_at_the_nearest_admissible_output():
+    from rosgraph import ROOT
+
+    from nmpc_avoid_ros.core.config.settings import load_params_file
+
+    params = load_params_file(ROOT / "config" / "mobile_robot_live.yaml").section("controller")
+    params.update(codegen=False, codegen_background=False, feedback=False)
+    controller = NmpcController(ControllerSettings.from_params(params))
+    controller.set_regions([Ellipse(c, a, yaw, "output") for c, a, yaw in ROBOT_0199["ellipses"]])
+    escape, rest, best = controller.escape, np.array(ROBOT_0199["rest"]), np.array(ROBOT_0199["best"])
+    target = np.array(ROBOT_0199["target"])
+    par = controller.parameters(np.array([*rest, 0.0, 0.0]), target)
+    aim = escape.aim(target)
+    [nearest] = escape.beyond_blocks(rest, aim, par)
+    # the campaign's best admissible output is the regions' own; the controller's is theirs inflated by its margins
+    assert np.linalg.norm(nearest - best) < 0.15 and np.linalg.norm(nearest - aim) < np.linalg.norm(best - aim) + 0.1
+    assert escape.should_try(rest, rest, target, par)
+    assert escape.beyond_blocks(nearest, aim, par) == []  # there: nothing nearer, no stall to escape
+    assert not escape.should_try(nearest, nearest, target, par)

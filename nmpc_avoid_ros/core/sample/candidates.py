@@ -51,6 +51,9 @@ PARK_OFFSET = 0.03
 MANOEUVRE_REACH = (0.3, 0.6)
 #: the label prefix of the manoeuvre guesses
 MANOEUVRE = "manoeuvre_"
+#: rings of outputs searched round a covered target for its nearest admissible output, and the directions on each
+#: ring of a planar output (one output: both ways)
+NEAREST_RINGS, NEAREST_DIRECTIONS = 48, 32
 
 
 def _segment(y_from: np.ndarray, y_to: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -170,7 +173,31 @@ class EscapeGuesses:
                     break
             if (not in_box[k] and not blocked[k]) or (t[k] > 1.0 and not inside_block):
                 break  # beyond lambda Z (outputs that are not steady states the plan may use), or past y_to
+        if not beyond and blocked[int(np.argmin(np.abs(t - 1.0)))]:
+            nearest = self.nearest_admissible(y_from, y_to, par)
+            beyond += [] if nearest is None else [nearest]
         return beyond
+
+    def nearest_admissible(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> np.ndarray | None:
+        """For y_to [p] covered by a region, the admissible output nearest it on rings round it (NEAREST_RINGS out to
+        y_from's distance, NEAREST_DIRECTIONS each; one or two outputs), if it is nearer than y_from by more than two
+        rings; else None. Where the far side along the segment lies outside lambda Z (a target beyond the box's
+        edge) or the region's boundary has several rests, y_a stalled short of it with no stretch to pass (campaign
+        robot-0112: y_a 0.99 from its target's clipped aim on the ellipse's rim, 0.36 on the box's edge)."""
+        p, reach = len(y_to), float(np.linalg.norm(y_from - y_to))
+        if p > 2 or reach == 0.0:
+            return None
+        angles = np.linspace(0.0, 2 * np.pi, NEAREST_DIRECTIONS, endpoint=False)
+        directions = np.array([[-1.0, 1.0]]) if p == 1 else np.vstack([np.cos(angles), np.sin(angles)])
+        step = reach / NEAREST_RINGS
+        rings = np.concatenate([y_to[:, None] + k * step * directions for k in range(1, NEAREST_RINGS - 1)], axis=1)
+        for start in range(0, rings.shape[1], SEGMENT_POINTS):  # in the segment function's batches, nearest first
+            Y = rings[:, start:start + SEGMENT_POINTS]
+            batch = np.pad(Y, ((0, 0), (0, SEGMENT_POINTS - Y.shape[1])), mode="edge")
+            free = self._free(batch, par)[0][:Y.shape[1]]
+            if free.any():
+                return Y[:, int(np.argmax(free))].copy()
+        return None
 
     def before_block(self, y_from: np.ndarray, y_to: np.ndarray, par: np.ndarray) -> np.ndarray | None:
         """The last admissible output on the segment from y_from to y_to before its first blocked
