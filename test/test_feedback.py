@@ -167,6 +167,7 @@ def test_coasting_drops_the_plan_prepared_for_the_sample_it_replaces_and_off_pre
     assert controller.prepared is not None
     controller.coast()
     assert controller.prepared is None
+    assert controller.prepare() is None  # nothing to predict from: the last step's state is a sample old
     result = controller.step(x, [5.0])  # one sample later than the lost preparation: searched
     assert result.feedback is None and result.search.tried
     off = controller_of("paper", False)

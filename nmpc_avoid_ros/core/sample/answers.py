@@ -194,10 +194,12 @@ class SampleAnswers:
         The plan ages by one sample, so the next `step` shifts its warm start accordingly; the
         result's first state is the plan's prediction for now. None when there is no plan yet.
         Status FALLBACK_SHIFT (or FALLBACK_STEADY once the plan is used up), solver status
-        'no_new_state'.
+        'no_new_state'. Nothing is prepared after it (`prepare` needs a step's state of the last sample).
         """
+        self._settle()  # an answered sample's bookkeeping, before its sample is forgotten below
         carry = self.memory.carry()
-        carry.prepared = None  # prepared for the sample this one replaces
+        # prepared for the sample this one replaces; and no preparation from the last step's state, now a sample old
+        carry.prepared = carry.last = None
         plan = carry.plan
         if plan is None:
             self.memory.advance(carry)
