@@ -17,11 +17,7 @@ Each candidate's input sequence is simulated with the prediction model over `hor
 its predicted violation is the largest, over those samples, of: region functions g (keep-in
 expressions and obstacles, active ones), state-box excess and hard-constraint excess. The one
 with the least is applied (never blindly u = 0: measured in the campaign, u = 0 after a failed
-cold start drove van der Pol to |x1 x2| - 2 = 4.11). When every candidate violates (the state itself
-inside a region as planned), the one with the least summed squared excess is applied, the recovery
-solve's own measure: the largest is then the first rows', which no input changes, and by it the safe input
-(stopped) tied with a way out and held the robot inside for good (a unicycle whose body touched a pillar
-in real time stood there for a minute, test/test_escape_fallback.py).
+cold start drove van der Pol to |x1 x2| - 2 = 4.11).
 """
 
 from __future__ import annotations
@@ -81,15 +77,12 @@ class FallbackChoice:
     horizon: int
     solve_time: float = 0.0
     unavoidable: bool = False  # every candidate predicts a violation (see FallbackSelector.check_plan)
-    #: chosen by the least summed squared excess (every candidate violates), not the least largest one
-    by_sum: bool = False
 
     @property
     def reason(self) -> str:
         """One line: the kind applied and every candidate's predicted violation."""
         others = ", ".join(f"{k} {v:.3g}" for k, v in self.predicted.items())
-        measure = "least summed squared violation" if self.by_sum else "least predicted violation"
-        return f"{self.kind}: {measure} over {self.horizon} samples (largest: {others})"
+        return f"{self.kind}: least predicted violation over {self.horizon} samples ({others})"
 
 
 class FallbackSelector:
@@ -130,8 +123,7 @@ class FallbackSelector:
                 terms.append(parts.hard_g(x, u_next))
             excess.append(ca.vertcat(*terms))
         excess = ca.vertcat(*excess)  # [H * rows]: > 0 where violated
-        self._rollout = ca.Function("fallback_rollout", [x0, U, par], [ca.horzcat(*states), ca.mmax(excess),
-                                                                       ca.sumsqr(ca.fmax(excess, 0))])
+        self._rollout = ca.Function("fallback_rollout", [x0, U, par], [ca.horzcat(*states), ca.mmax(excess)])
         # recovery: min sum max(0, excess)^2 (smooth with slacks s >= excess, s >= 0) + small |u - u_ref|^2
         slack = ca.SX.sym("s", excess.numel())
         u_ref = ca.SX.sym("u_ref", m)
@@ -195,17 +187,10 @@ class FallbackSelector:
 
     def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
         """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""
-        states, worst, _ = self._simulate(x, inputs, par)
-        return states, worst
-
-    def _simulate(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float, float]:
-        """As `predict`, and the summed squared excess over the horizon (the recovery solve's measure)."""
-        states, worst, total = self._rollout(x, np.asarray(inputs, float).T, par)
-        states, worst, total = np.asarray(states), float(worst), float(total)
+        states, worst = self._rollout(x, np.asarray(inputs, float).T, par)
+        worst = float(worst)
         # a rollout that overflows (a state far outside Z) predicts the worst, not none: max(0, nan) is 0
-        if not (math.isfinite(worst) and math.isfinite(total)):
-            return states.T, math.inf, math.inf
-        return states.T, max(0.0, worst), total
+        return np.asarray(states).T, max(0.0, worst) if math.isfinite(worst) else math.inf
 
     def recover(self, x: np.ndarray, par: np.ndarray, start: np.ndarray, end: float = math.inf
                 ) -> tuple[np.ndarray | None, float]:
@@ -243,24 +228,19 @@ class FallbackSelector:
             sequences["steady"] = np.tile(u_a, (H, 1)) if np.ndim(u_a) == 1 else np.asarray(u_a, float)
         sequences["safe"] = np.tile(self.safe_input, (H, 1))
         sequences = {kind: self.followed(seq, par) for kind, seq in sequences.items()}
-        predicted = {kind: self._simulate(x, seq, par) for kind, seq in sequences.items()}
+        predicted = {kind: self.predict(x, seq, par) for kind, seq in sequences.items()}
         seconds = 0.0
-        if recover and min(v for _, v, _ in predicted.values()) > VIOLATION_TOLERANCE:
-            best_start = min(sequences, key=lambda k: predicted[k][2])
+        if recover and min(v for _, v in predicted.values()) > VIOLATION_TOLERANCE:
+            best_start = min(sequences, key=lambda k: predicted[k][1])
             inputs, seconds = self.recover(x, par, sequences[best_start], end)
             if inputs is not None:
                 sequences["recovery"] = inputs = self.followed(inputs, par)
-                predicted["recovery"] = self._simulate(x, inputs, par)
-        unavoidable = min(v for _, v, _ in predicted.values()) > VIOLATION_TOLERANCE
-        if unavoidable:
-            least = min(total for _, _, total in predicted.values())
-            kind = next(k for k in CANDIDATES if k in predicted and predicted[k][2] <= least)
-        else:
-            least = max(VIOLATION_TOLERANCE, min(v for _, v, _ in predicted.values()))
-            kind = next(k for k in CANDIDATES if k in predicted and predicted[k][1] <= least)
-        states, violation, _ = predicted[kind]
+                predicted["recovery"] = self.predict(x, inputs, par)
+        least = max(VIOLATION_TOLERANCE, min(v for _, v in predicted.values()))
+        kind = next(k for k in CANDIDATES if k in predicted and predicted[k][1] <= least)
+        states, violation = predicted[kind]
         every = {k: predicted[k][1] for k in CANDIDATES if k in predicted}
-        return FallbackChoice(kind, sequences[kind], states, violation, every, H, seconds, by_sum=unavoidable)
+        return FallbackChoice(kind, sequences[kind], states, violation, every, H, seconds)
 
     def check_plan(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray, end: float = math.inf
                    ) -> FallbackChoice | None:
