@@ -327,6 +327,37 @@ def test_an_escape_plan_clear_within_the_tolerance_is_not_refused_for_a_hair_mor
     assert deep(solved("around", nlp, w, 1.0e5, 0.15)) == ""
 
 
+#: the unicycle of config/unicycle_world.yaml (a 0.2 m body, margin 0.05 m, rate limits, 50 ms input delay) with
+#: its body 2 cm into a pillar (radius 0.12 m) that stands on its way to the goal: where a CI run's robot stopped
+#: after touching a pillar in real time (test_world_dds, 0.204 m from a wall cell's centre)
+PILLAR = Ellipse((0.3 * np.cos(0.6), 0.3 * np.sin(0.6)), (0.12, 0.12), 0.0, "output")
+
+
+@pytest.mark.parametrize("yaw", [0.0, 1.2])  # 0.6, facing the pillar head-on: still stands (docs/design.md)
+def test_a_unicycle_whose_body_touches_a_pillar_turns_away_after_n_samples_and_reaches_its_goal(yaw):
+    """Every candidate predicts a violation from inside the pillar's planned band; by the largest one (the first
+    rows', which no input changes) the stop won or tied, and the robot stood there for good. After N such samples in
+    a row the summed squared violation (the recovery's measure) ranks: a way out wins."""
+    from rosgraph import ROOT
+
+    from nmpc_avoid_ros.core.config.settings import load_params_file
+
+    params = load_params_file(ROOT / "config" / "unicycle_world.yaml").section("controller")
+    params.update(codegen=False, codegen_background=False)
+    controller = NmpcController(ControllerSettings.from_params(params))
+    N = controller.settings.horizon
+    results = []
+    run = run_closed_loop(controller, [0.0, 0.0, yaw], [3.0, 2.0], N + 45,
+                          regions=lambda k: [PILLAR] if k == 0 else None, on_step=lambda k, res: results.append(res))
+    assert results[0].region_unavoidable  # the case in question: inside the band, every candidate violates
+    distance = np.hypot(*(run.x[:, :2] - PILLAR.center).T)
+    planned_radius = 0.12 + 0.2 + 0.05  # the pillar, the body, region_margin
+    out = np.flatnonzero(distance > planned_radius)
+    assert len(out) and out[0] <= N + 12, distance  # out of the planned band within ~2 s of the N samples
+    assert distance.min() >= distance[0] - 0.015, distance  # measured 0.011 m closer while it turns
+    assert np.hypot(*(run.x[-1, :2] - [3.0, 2.0])) <= 0.15, run.x[-1]
+
+
 #: campaign robot-0199 (seed 0, config/mobile_robot_live.yaml): the target lies inside an ellipse; y_a slid along its
 #: rim and rested at (5.76, 6.19), 1.47 from the best admissible output (7.01, 6.95) the campaign computes, with no
 #: stretch of the segment to the target's far side to pass (it ends in the next ellipse): no escape was tried

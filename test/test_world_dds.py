@@ -23,8 +23,9 @@ from nmpc_avoid_ros.ros.parameters import LATCHED_QOS, STREAM_QOS
 
 # serial: clearance in real time, alone on the machine. In a CI run beside the other DDS tests the unicycle's body came
 # 0.204 m from a pillar cell's centre (into the half cell) and then stood there: every fallback candidate predicted a
-# violation and the stop won (docs/design.md, 'Unavoidable region': an open problem). Beside two or three busy loops
-# here, 17 of 18 runs kept 0.282-0.444 m and one came to 0.202: an unpredicted delay of a starved machine
+# violation and the stop won (now after N such samples the summed violation ranks: docs/design.md, 'Fallback').
+# Beside two or three busy loops here, 17 of 18 runs kept 0.282-0.444 m and one came to 0.202: an unpredicted delay
+# of a starved machine
 pytestmark = [pytest.mark.dds, pytest.mark.slow, pytest.mark.serial]
 
 GOAL = (3.0, 2.0)  # config/unicycle_world.yaml's target

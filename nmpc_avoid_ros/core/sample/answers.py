@@ -55,9 +55,14 @@ class SampleAnswers:
         mem, H = self.memory, self.fallback.horizon  # mem.overrides: as the sample began; the count is the carry's
         if not (self.settings.mu > 0 and not best.clear):
             return result
-        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end)
+        # N overrides in a row (the regions unavoidable from x all along): the summed squared excess ranks, so that
+        # the stop, which ties with a way out by the largest (the first rows', no input changes them), does not hold
+        # the plant inside for good (a unicycle's body against a pillar, test_escape_fallback)
+        by_sum = mem.overrides >= self.nlp.layout.horizon
+        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end, by_sum)
         if choice is not None and choice.unavoidable and self._given != self._regions:
-            real = self.fallback.check_plan(sample.x, self._given_parameters(sample), result.inputs[:H], sample.end)
+            real = self.fallback.check_plan(sample.x, self._given_parameters(sample), result.inputs[:H], sample.end,
+                                            by_sum)
             sample.seconds += 0.0 if real is None else real.solve_time
             result.margin_unavoidable = real is None or not real.unavoidable
             if result.margin_unavoidable:
@@ -78,8 +83,9 @@ class SampleAnswers:
             why = "region unavoidable from the current state" if choice.unavoidable else "plan predicts penetration"
             result.fallback_reason = f"{why}; {choice.reason}"
         sample.seconds += choice.solve_time
+        if choice.unavoidable or choice.kind != "plan":  # an unavoidable sample counts even when the plan is least
+            sample.carry.overrides = COUNTED
         if choice.kind != "plan":
-            sample.carry.overrides = "" if choice.unavoidable else COUNTED
             result.status = StepStatus(f"fallback_{choice.kind}")
             result.u, result.inputs, result.states = choice.inputs[0].copy(), choice.inputs.copy(), choice.states
             self._follow(sample.carry, choice)

@@ -77,12 +77,15 @@ class FallbackChoice:
     horizon: int
     solve_time: float = 0.0
     unavoidable: bool = False  # every candidate predicts a violation (see FallbackSelector.check_plan)
+    #: chosen by the least summed squared excess (every candidate violated, N samples in a row)
+    by_sum: bool = False
 
     @property
     def reason(self) -> str:
         """One line: the kind applied and every candidate's predicted violation."""
         others = ", ".join(f"{k} {v:.3g}" for k, v in self.predicted.items())
-        return f"{self.kind}: least predicted violation over {self.horizon} samples ({others})"
+        measure = "least summed squared violation" if self.by_sum else "least predicted violation"
+        return f"{self.kind}: {measure} over {self.horizon} samples (largest: {others})"
 
 
 class FallbackSelector:
@@ -123,7 +126,8 @@ class FallbackSelector:
                 terms.append(parts.hard_g(x, u_next))
             excess.append(ca.vertcat(*terms))
         excess = ca.vertcat(*excess)  # [H * rows]: > 0 where violated
-        self._rollout = ca.Function("fallback_rollout", [x0, U, par], [ca.horzcat(*states), ca.mmax(excess)])
+        self._rollout = ca.Function("fallback_rollout", [x0, U, par], [ca.horzcat(*states), ca.mmax(excess),
+                                                                       ca.sumsqr(ca.fmax(excess, 0))])
         # recovery: min sum max(0, excess)^2 (smooth with slacks s >= excess, s >= 0) + small |u - u_ref|^2
         slack = ca.SX.sym("s", excess.numel())
         u_ref = ca.SX.sym("u_ref", m)
@@ -187,10 +191,17 @@ class FallbackSelector:
 
     def predict(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float]:
         """States x(0..H) [H+1, n] and the predicted violation (max excess, 0 if none) of inputs [H, m]."""
-        states, worst = self._rollout(x, np.asarray(inputs, float).T, par)
-        worst = float(worst)
+        states, worst, _ = self._simulate(x, inputs, par)
+        return states, worst
+
+    def _simulate(self, x: np.ndarray, inputs: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """As `predict`, and the summed squared excess over the horizon (the recovery solve's measure)."""
+        states, worst, total = self._rollout(x, np.asarray(inputs, float).T, par)
+        states, worst, total = np.asarray(states).T, float(worst), float(total)
         # a rollout that overflows (a state far outside Z) predicts the worst, not none: max(0, nan) is 0
-        return np.asarray(states).T, max(0.0, worst) if math.isfinite(worst) else math.inf
+        if not (math.isfinite(worst) and math.isfinite(total)):
+            return states, math.inf, math.inf
+        return states, max(0.0, worst), total
 
     def recover(self, x: np.ndarray, par: np.ndarray, start: np.ndarray, end: float = math.inf
                 ) -> tuple[np.ndarray | None, float]:
@@ -214,12 +225,13 @@ class FallbackSelector:
         return inputs, seconds
 
     def choose(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray | None, u_a: np.ndarray | None,
-               plan_left: bool, recover: bool = True, end: float = math.inf) -> FallbackChoice:
+               plan_left: bool, recover: bool = True, end: float = math.inf, by_sum: bool = False) -> FallbackChoice:
         """The least-violating candidate for state x [n]. `plan_inputs` [H, m]: the shifted plan's
         inputs (padded with u_a); `u_a` [m], held, or the `steady` candidate's inputs [H, m] (the local controller
         with `terminal: set`); `plan_left`: the shifted plan still has inputs of its own; `recover`
         False: no recovery solve (a state outside the solve domain is handed to no solver); `end`: the
-        recovery solve's end (time.perf_counter s)."""
+        recovery solve's end (time.perf_counter s); `by_sum`: when every candidate violates, the least summed
+        squared excess wins instead of the least largest one (after N such samples in a row: SampleAnswers._guard)."""
         H = self.horizon
         sequences: dict[str, np.ndarray] = {}
         if plan_inputs is not None and plan_left:
@@ -228,22 +240,33 @@ class FallbackSelector:
             sequences["steady"] = np.tile(u_a, (H, 1)) if np.ndim(u_a) == 1 else np.asarray(u_a, float)
         sequences["safe"] = np.tile(self.safe_input, (H, 1))
         sequences = {kind: self.followed(seq, par) for kind, seq in sequences.items()}
-        predicted = {kind: self.predict(x, seq, par) for kind, seq in sequences.items()}
+        predicted = {kind: self._simulate(x, seq, par) for kind, seq in sequences.items()}
         seconds = 0.0
-        if recover and min(v for _, v in predicted.values()) > VIOLATION_TOLERANCE:
-            best_start = min(sequences, key=lambda k: predicted[k][1])
-            inputs, seconds = self.recover(x, par, sequences[best_start], end)
-            if inputs is not None:
-                sequences["recovery"] = inputs = self.followed(inputs, par)
-                predicted["recovery"] = self.predict(x, inputs, par)
-        least = max(VIOLATION_TOLERANCE, min(v for _, v in predicted.values()))
-        kind = next(k for k in CANDIDATES if k in predicted and predicted[k][1] <= least)
-        states, violation = predicted[kind]
+        if recover and min(v for _, v, _ in predicted.values()) > VIOLATION_TOLERANCE:
+            # by the sum, from every candidate: a stop is a stationary point of the recovery (a unicycle must turn
+            # before it can leave, and at rest turning changes no excess), a moving candidate breaks the tie
+            starts = sorted(sequences, key=lambda k: predicted[k][2 if by_sum else 1])[:None if by_sum else 1]
+            for start in starts:
+                inputs, spent = self.recover(x, par, sequences[start], end)
+                seconds += spent
+                if inputs is None:
+                    continue
+                inputs = self.followed(inputs, par)
+                simulated = self._simulate(x, inputs, par)
+                if "recovery" not in predicted or simulated[2 if by_sum else 1] < predicted["recovery"][
+                        2 if by_sum else 1]:
+                    sequences["recovery"], predicted["recovery"] = inputs, simulated
+        unavoidable = min(v for _, v, _ in predicted.values()) > VIOLATION_TOLERANCE
+        measure = 2 if by_sum and unavoidable else 1
+        least = min(p[measure] for p in predicted.values())
+        least = least if measure == 2 else max(VIOLATION_TOLERANCE, least)
+        kind = next(k for k in CANDIDATES if k in predicted and predicted[k][measure] <= least)
+        states, violation, _ = predicted[kind]
         every = {k: predicted[k][1] for k in CANDIDATES if k in predicted}
-        return FallbackChoice(kind, sequences[kind], states, violation, every, H, seconds)
+        return FallbackChoice(kind, sequences[kind], states, violation, every, H, seconds, by_sum=measure == 2)
 
-    def check_plan(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray, end: float = math.inf
-                   ) -> FallbackChoice | None:
+    def check_plan(self, x: np.ndarray, par: np.ndarray, plan_inputs: np.ndarray, end: float = math.inf,
+                   by_sum: bool = False) -> FallbackChoice | None:
         """A better input than the solved plan's [H, m], or None to apply the plan (`end`: as in `choose`).
 
         Only for a plan predicting penetration beyond VIOLATION_TOLERANCE: the least-violating of
@@ -257,7 +280,7 @@ class FallbackSelector:
         plan_violation = self.predict(x, plan_inputs, par)[1]
         if plan_violation <= VIOLATION_TOLERANCE:
             return None
-        choice = self.choose(x, par, plan_inputs, None, True, end=end)
+        choice = self.choose(x, par, plan_inputs, None, True, end=end, by_sum=by_sum)
         # the 'shift' candidate here is the plan itself
         choice.predicted = {("plan" if k == "shift" else k): v for k, v in choice.predicted.items()}
         if choice.kind == "shift":
