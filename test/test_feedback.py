@@ -18,7 +18,7 @@ from nmpc_avoid_ros.core.nlp.sensitivity import KktSensitivity
 from nmpc_avoid_ros.core.problem.regions import Ellipse
 from nmpc_avoid_ros.core.sample.controller import NmpcController
 from nmpc_avoid_ros.core.sample.feedback import FeedbackLaws
-from nmpc_avoid_ros.core.sample.status import FeedbackOutcome
+from nmpc_avoid_ros.core.sample.status import FeedbackOutcome, StepStatus
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -134,7 +134,7 @@ def test_a_search_cut_at_the_command_budget_goes_on_in_the_preparation_and_the_n
     assert controller.sample_budget(before_command=False) == controller.settings.max_solve_time
     cut = controller.step(x, [4.0])  # a new target: the law does not hold, the sample searches
     reference.step(x, [4.0])
-    assert cut.feedback is FeedbackOutcome.INPUTS_CHANGED and str(cut.status) == "fallback_shift", cut.status
+    assert cut.feedback is FeedbackOutcome.INPUTS_CHANGED and cut.status is StepStatus.FALLBACK_SHIFT, cut.status
     x = plant.advance(x, cut.u, LIVE.sample_time)
     prepared = controller.prepare()
     assert prepared is not None and prepared.law is not None, prepared

@@ -55,14 +55,14 @@ class SampleAnswers:
         mem, H = self.memory, self.fallback.horizon  # mem.overrides: as the sample began; the count is the carry's
         if not (self.settings.mu > 0 and not best.clear):
             return result
-        # N overrides in a row (the regions unavoidable from x all along): the summed squared excess ranks, so that
-        # the stop, which ties with a way out by the largest (the first rows', no input changes them), does not hold
-        # the plant inside for good (a unicycle's body against a pillar, test_escape_fallback)
-        by_sum = mem.overrides >= self.nlp.layout.horizon
-        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end, by_sum)
+        # N overrides in a row: an avoidable penetration's plan is applied; where the regions were unavoidable all
+        # along, the summed squared excess ranks, so that the stop, which ties with a way out by the largest (the
+        # first rows', no input changes them), does not hold the plant inside for good (a unicycle against a pillar)
+        overridden_long = mem.overrides >= self.nlp.layout.horizon
+        choice = self.fallback.check_plan(sample.x, sample.par, result.inputs[:H], sample.end, overridden_long)
         if choice is not None and choice.unavoidable and self._given != self._regions:
             real = self.fallback.check_plan(sample.x, self._given_parameters(sample), result.inputs[:H], sample.end,
-                                            by_sum)
+                                            overridden_long)
             sample.seconds += 0.0 if real is None else real.solve_time
             result.margin_unavoidable = real is None or not real.unavoidable
             if result.margin_unavoidable:
@@ -73,7 +73,7 @@ class SampleAnswers:
                 if real is None:
                     return result
                 choice = real
-        if choice is None or (not choice.unavoidable and mem.overrides >= self.nlp.layout.horizon):
+        if choice is None or (not choice.unavoidable and overridden_long):
             sample.carry.overrides = RESET
             return result
         result.region_unavoidable = choice.unavoidable

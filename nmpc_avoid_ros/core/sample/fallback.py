@@ -17,7 +17,10 @@ Each candidate's input sequence is simulated with the prediction model over `hor
 its predicted violation is the largest, over those samples, of: region functions g (keep-in
 expressions and obstacles, active ones), state-box excess and hard-constraint excess. The one
 with the least is applied (never blindly u = 0: measured in the campaign, u = 0 after a failed
-cold start drove van der Pol to |x1 x2| - 2 = 4.11).
+cold start drove van der Pol to |x1 x2| - 2 = 4.11). With `by_sum` (the guard's N samples in a row whose
+candidates all violate) such candidates rank by their summed squared excess, the recovery's measure, and the
+recovery starts from each of them: by the largest, the first rows' (which no input changes), a stop held a unicycle
+against a pillar for good.
 """
 
 from __future__ import annotations
@@ -242,22 +245,21 @@ class FallbackSelector:
         sequences = {kind: self.followed(seq, par) for kind, seq in sequences.items()}
         predicted = {kind: self._simulate(x, seq, par) for kind, seq in sequences.items()}
         seconds = 0.0
+        rank = 2 if by_sum else 1  # the index in predicted's (states, largest excess, summed squared excess)
         if recover and min(v for _, v, _ in predicted.values()) > VIOLATION_TOLERANCE:
             # by the sum, from every candidate: a stop is a stationary point of the recovery (a unicycle must turn
             # before it can leave, and at rest turning changes no excess), a moving candidate breaks the tie
-            starts = sorted(sequences, key=lambda k: predicted[k][2 if by_sum else 1])[:None if by_sum else 1]
-            for start in starts:
+            for start in sorted(sequences, key=lambda k: predicted[k][rank])[:None if by_sum else 1]:
                 inputs, spent = self.recover(x, par, sequences[start], end)
                 seconds += spent
                 if inputs is None:
                     continue
                 inputs = self.followed(inputs, par)
                 simulated = self._simulate(x, inputs, par)
-                if "recovery" not in predicted or simulated[2 if by_sum else 1] < predicted["recovery"][
-                        2 if by_sum else 1]:
+                if "recovery" not in predicted or simulated[rank] < predicted["recovery"][rank]:
                     sequences["recovery"], predicted["recovery"] = inputs, simulated
         unavoidable = min(v for _, v, _ in predicted.values()) > VIOLATION_TOLERANCE
-        measure = 2 if by_sum and unavoidable else 1
+        measure = rank if unavoidable else 1
         least = min(p[measure] for p in predicted.values())
         least = least if measure == 2 else max(VIOLATION_TOLERANCE, least)
         kind = next(k for k in CANDIDATES if k in predicted and predicted[k][measure] <= least)
