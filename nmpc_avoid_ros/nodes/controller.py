@@ -17,8 +17,9 @@ mid-solve; input floods do not hold the samples up.
 
 Real-time mode: a timer on the node clock at sample_time (so use_sim_time works) solves on the latest
 state; a sample without a new state since the last (lost or late messages) applies the next input of the
-last plan (core `coast`) once the command in force has acted its sample_time, and is counted in `missed_samples`. Lockstep mode (`lockstep: true`, with the plant
-in lockstep): each state message is solved once, as it arrives, as the offline loop does. With the
+last plan (core `coast`) once the command in force has acted its sample_time, counted in `missed_samples`.
+Lockstep mode (`lockstep: true`, with the plant in lockstep): each state message is solved once, as it
+arrives, as the offline loop does. With the
 `feedback` setting each sample ends by preparing the next (core/sample/feedback.py): a prepared plan answers
 the next state at once, without a hold.
 

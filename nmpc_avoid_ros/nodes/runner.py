@@ -27,6 +27,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from ..core.errors import NmpcError
+from ..core.nlp.native_threads import leave, wait_native
 
 
 class PoolExecutor(Executor):
@@ -89,9 +90,29 @@ class RosLogHandler(logging.Handler):
             self.logger.info(text)
 
 
+#: s a stopped node waits for the threads in CasADi's native code (a cache file being saved; a law still being built,
+#: up to 14 s, is abandoned: core/nlp/native_threads.py)
+NATIVE_EXIT_WAIT = 2.0
+
+
 def run_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc: str | None,
              on_stop: Callable[[Node], None] | None = None, on_signal: Callable[[Node], None] | None = None,
              executor_factory: Callable[[], Executor] = SingleThreadedExecutor) -> int:
+    """`spin_node`, then the end of the process: a thread still in CasADi's native code (a first start's feedback law
+    or compile) would crash the interpreter's finalisation (exit 134/139 after a clean stop), so after
+    NATIVE_EXIT_WAIT the process ends without it (`leave`), with the same exit code."""
+    code = spin_node(factory, argv, name, doc, on_stop, on_signal, executor_factory)
+    running = wait_native(NATIVE_EXIT_WAIT)
+    if running:
+        print(f"{name}: leaving without {', '.join(running)} (a first start's cache, built again by the next start)",
+              file=sys.stderr)
+        leave(code)
+    return code
+
+
+def spin_node(factory: Callable[[], Node], argv: list[str] | None, name: str, doc: str | None,
+              on_stop: Callable[[Node], None] | None = None, on_signal: Callable[[Node], None] | None = None,
+              executor_factory: Callable[[], Executor] = SingleThreadedExecutor) -> int:
     """Init rclpy with argv (which may hold `--ros-args ...`), build the node, spin until a signal.
 
     SIGINT and SIGTERM end the spin between callbacks (never inside one, so no callback publishes

@@ -24,13 +24,13 @@ import shutil
 import signal
 import subprocess
 import tempfile
-import threading
 from collections.abc import Callable
 from pathlib import Path
 
 import casadi as ca
 
 from ..errors import ConfigError
+from .native_threads import start_native
 
 #: environment variable that overrides the default cache folder
 CACHE_ENV = "NMPC_AVOID_ROS_CACHE"
@@ -159,7 +159,7 @@ def serve_compiled(function: ca.Function, folder: Path | None, background: bool,
         except ConfigError as error:  # as a failed solver compile: the interpreted one serves on
             log.warning(f"{what} stays interpreted: {error}")
 
-    threading.Thread(target=compile_and_install, daemon=True, name=f"{function.name()}-compile").start()
+    start_native(compile_and_install, name=f"{function.name()}-compile")
 
 
 def compiled_library(key: str, folder: Path, make_solver: Callable[[], ca.Function],

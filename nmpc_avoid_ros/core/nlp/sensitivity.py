@@ -30,7 +30,6 @@ import atexit
 import functools
 import os
 import tempfile
-import threading
 import time as clock
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +40,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .codegen import problem_digest
+from .native_threads import start_native
 
 #: a constraint row or bound this close to its bound (scaled by 1 + |bound|) counts as active
 ACTIVE_TOLERANCE = 1e-6
@@ -79,7 +79,7 @@ class KktSensitivity:
         if paths is not None:
             save = functools.partial(_save_all, (self._first, self._second), paths)
             if background:  # 0.1-0.3 s of writing each: a first start does not wait for it
-                threading.Thread(target=save, daemon=True, name="kkt-save").start()
+                start_native(save, name="kkt-save")
             else:
                 save()
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,7 @@ import numpy as np
 
 from ..nlp.buffered import Buffered
 from ..nlp.codegen import serve_compiled
+from ..nlp.native_threads import start_native
 from ..nlp.parts import command_index
 from ..nlp.search import VIOLATION_TOLERANCE, SearchReport
 from ..nlp.sensitivity import MULTIPLIER_TOLERANCE, FeedbackLaw, KktSensitivity
@@ -102,7 +102,7 @@ class FeedbackLaws:
         if later and background:
             # CasADi's symbolic work releases the interpreter lock: the samples go on meanwhile (measured: the
             # main thread's longest wait 3 ms during a 1.2 s Jacobian)
-            threading.Thread(target=self._add_later, args=(list(later),), daemon=True, name="feedback-laws").start()
+            start_native(self._add_later, list(later), name="feedback-laws")
         else:
             for nlp in later:
                 self._add(nlp)
