@@ -247,18 +247,18 @@ def test_a_later_law_that_fails_to_build_is_said_and_its_plans_search(monkeypatc
 
 
 def test_a_save_cut_short_by_the_process_end_leaves_no_half_written_file(tmp_path):
-    """A save on a daemon thread can be running when the process ends: its partial file goes at exit (atexit), and
-    its own replace then fails quietly."""
-    from nmpc_avoid_ros.core.nlp import sensitivity
+    """A save or a compile on a thread can be running when the process ends: its partial file or temporary folder goes
+    at exit (core/nlp/native_threads.py `scratch`), and its own replace then fails quietly."""
+    from nmpc_avoid_ros.core.nlp import native_threads, sensitivity
 
     partial = tmp_path / "tmpabc.part"
     partial.write_bytes(b"half a function")
-    sensitivity._SAVING.add(partial)
-    try:
-        sensitivity._remove_unfinished_saves()
-    finally:
-        sensitivity._SAVING.discard(partial)
-    assert not partial.exists()
+    build = tmp_path / "tmpbuild"
+    build.mkdir()
+    (build / "feedback_answer.c").write_text("int half;")
+    with native_threads.scratch(partial), native_threads.scratch(build):
+        native_threads._remove_scratch()
+    assert not partial.exists() and not build.exists()
     function = ca.Function("f", [ca.SX.sym("x")], [ca.SX.sym("x") * 0])
     sensitivity._save_atomically(function, tmp_path / "missing_folder" / "f.casadi")  # creates its folder
     assert ca.Function.load(str(tmp_path / "missing_folder" / "f.casadi")).name() == "f"

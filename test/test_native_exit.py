@@ -21,7 +21,7 @@ from nmpc_avoid_ros.nodes.runner import NATIVE_EXIT_WAIT
 LEAVING = """
 import atexit, pathlib, sys, time
 import casadi as ca
-from nmpc_avoid_ros.core.nlp.native_threads import leave, start_native, unfinished, wait_native
+from nmpc_avoid_ros.core.nlp.native_threads import leave, scratch, start_native, wait_native
 
 def symbolic():  # native work: the Hessian of a long sum, seconds of CasADi with the interpreter lock released
     x = ca.SX.sym("x", 400)
@@ -29,22 +29,27 @@ def symbolic():  # native work: the Hessian of a long sum, seconds of CasADi wit
         ca.hessian(ca.sum1(ca.sin(x) * ca.cos(x[::-1]) ** 2), x)
 
 atexit.register(lambda: pathlib.Path(sys.argv[1]).write_text("exit handlers ran"))
+build = pathlib.Path(sys.argv[2])
+build.mkdir()
+(build / "half.c").write_text("int half;")
 start_native(symbolic, name="symbolic")
 time.sleep(0.2)
 print(wait_native(0.1), flush=True)
-leave(3)
+with scratch(build):  # a compile's temporary folder, being written when the process ends
+    leave(3)
 """
 
 
-def test_leave_runs_the_exit_handlers_and_ends_with_the_code_while_a_native_thread_runs(tmp_path):
+def test_leave_runs_the_exit_handlers_removes_the_scratch_and_ends_with_the_code_while_a_native_thread_runs(tmp_path):
     marker = tmp_path / "atexit.txt"
     begin = time.monotonic()
-    done = subprocess.run([sys.executable, "-c", textwrap.dedent(LEAVING), str(marker)], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT)
+    build = tmp_path / "tmpbuild"
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent(LEAVING), str(marker), str(build)],
+                          capture_output=True, text=True, timeout=60, cwd=ROOT)
     elapsed = time.monotonic() - begin
     assert done.returncode == 3, done.stderr
     assert done.stdout.strip() == "['symbolic']"  # still running when the process ended
-    assert marker.read_text() == "exit handlers ran"
+    assert marker.read_text() == "exit handlers ran" and not build.exists()
     assert elapsed < 10.0, elapsed  # well before the symbolic work would have ended
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import casadi as ca
 
 from ..errors import ConfigError
-from .native_threads import start_native
+from .native_threads import scratch, start_native
 
 #: environment variable that overrides the default cache folder
 CACHE_ENV = "NMPC_AVOID_ROS_CACHE"
@@ -125,7 +125,7 @@ def compiled_function(function: ca.Function, folder: Path) -> ca.Function:
     library, name = function_library(function, folder), function.name()
     if not library.exists():
         compiler = prepare_folder(folder)
-        with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        with tempfile.TemporaryDirectory(dir=folder) as tmp, scratch(Path(tmp)):
             # written under a prefix, not the working directory: threads compile these at once (a first start
             # compiles one per feedback law in the background), and a chdir is the whole process's
             generator = ca.CodeGenerator(f"{name}.c")

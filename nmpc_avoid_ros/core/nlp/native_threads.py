@@ -11,14 +11,39 @@ without finalising the interpreter.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
+import shutil
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 _started: list[threading.Thread] = []
 _lock = threading.Lock()
+#: files and folders being written now (a cache file's partial save, a compile's temporary folder): removed at exit
+_scratch: set[Path] = set()
+
+
+@contextlib.contextmanager
+def scratch(path: Path) -> Iterator[Path]:
+    """Within the block `path` (a file or folder being written) is removed by the exit handlers if the process ends
+    meanwhile, so a cache keeps nothing half-written."""
+    _scratch.add(path)
+    try:
+        yield path
+    finally:
+        _scratch.discard(path)
+
+
+@atexit.register
+def _remove_scratch() -> None:
+    for path in list(_scratch):
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
 
 
 def start_native(target: Callable[..., object], *args: object, name: str) -> threading.Thread:

@@ -26,7 +26,6 @@ nonlinear problem at the new parameters (core/sample/feedback.py). Elsewhere the
 
 from __future__ import annotations
 
-import atexit
 import functools
 import os
 import tempfile
@@ -40,7 +39,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .codegen import problem_digest
-from .native_threads import start_native
+from .native_threads import scratch, start_native
 
 #: a constraint row or bound this close to its bound (scaled by 1 + |bound|) counts as active
 ACTIVE_TOLERANCE = 1e-6
@@ -169,35 +168,22 @@ def _save_all(functions: tuple[ca.Function, ...], paths: tuple[Path, ...]) -> No
 
 
 def _save_atomically(function: ca.Function, path: Path) -> None:
-    """Save `function` to `path` whole or not at all (processes that start together read a complete file);
-    a cache that cannot be written is no error: the next start builds again."""
+    """Save `function` to `path` whole or not at all (processes that start together read a complete file; one
+    that ends meanwhile removes the partial file: `scratch`); a cache that cannot be written is no error: the next
+    start builds again."""
     partial: Path | None = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, name = tempfile.mkstemp(dir=path.parent, suffix=".part")
         os.close(handle)
         partial = Path(name)
-        _SAVING.add(partial)
-        function.save(name)
-        os.chmod(name, 0o644)  # as the compiled solvers beside it (mkstemp's is 0600)
-        os.replace(partial, path)
+        with scratch(partial):
+            function.save(name)
+            os.chmod(name, 0o644)  # as the compiled solvers beside it (mkstemp's is 0600)
+            os.replace(partial, path)
     except (OSError, RuntimeError):
         if partial is not None:
             partial.unlink(missing_ok=True)
-    finally:
-        if partial is not None:
-            _SAVING.discard(partial)
-
-
-#: files a save is writing now: a process that ends meanwhile (a save on a daemon thread) removes them, so the cache
-#: keeps no half-written file (the save's own os.replace then fails, and is no error)
-_SAVING: set[Path] = set()
-
-
-@atexit.register
-def _remove_unfinished_saves() -> None:
-    for partial in list(_SAVING):
-        partial.unlink(missing_ok=True)
 
 
 def _factor(hessian: sp.csc_matrix, jacobian: sp.csr_matrix) -> spla.SuperLU | str:
