@@ -29,7 +29,9 @@ def config(name: str) -> ControllerSettings:
 
 #: the paper's config (IPOPT, multiple shooting, Euler prediction: quick) and the live one (FATROP, stage-wise,
 #: RK4 in 8 sub-steps with the between-sample rows and ellipse tiers: the path users run, slow uncompiled)
-CONFIGS = {"paper": config("van_der_pol"),
+#: both with a generous clock budget: these tests compare loops, and a solve cut by the clock on a loaded machine (two
+#: test workers) parted the paper's searched and prepared loops at mu = 0 by 2.46 once
+CONFIGS = {"paper": config("van_der_pol").replace(max_solve_time=2.0),
            "live": config("van_der_pol_live").replace(codegen=False, max_solve_time=2.0)}
 #: the plant of each config's loop: the paper's is its own Euler map (its prediction misses the continuous plant by
 #: up to ~0.06 a sample, beyond the law's reach in most samples: they search), the live config's the continuous one

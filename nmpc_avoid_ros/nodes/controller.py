@@ -456,14 +456,6 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         self.publish_diagnostics(*self.goal_note(level, message), result, latency)
         self.controller.prepare(quick)  # the next sample solved ahead, after everything of this one went out
 
-    def hold_coast(self) -> None:
-        """Hold a coasting sample's command until the command in force has acted its sample_time: the instant its
-        plan assumed for the next input. At the tick it left command_latency early (the crane of docs/own_model.md,
-        0.12 s of a 0.2 s sample: its rope swung to 0.168 rad past the 0.15 bound after one sample without a state)."""
-        due = self._last_command_at + self.controller.settings.sample_time  # node clock
-        self.cover_due = due  # the late cover leaves this instant to the coast
-        self.timing.hold_until(time.perf_counter(), due - self.now())
-
     def publish_safe(self, why: str) -> None:
         """No solve: command the configured safe behaviour and report an ERROR (every sample)."""
         behavior = self.options.stale_behavior

@@ -115,7 +115,7 @@ def transition(method):
 
 class AlwaysAnswers:
     """Mixin of the controller node (a LifecycleNode with `controller`, `options`, `io`, `counts`,
-    `last_result`, `safe_input`, `obstacle_issue`)."""
+    `last_result`, `safe_input`, `obstacle_issue`, `timing`)."""
 
     def setup_threads(self) -> None:
         """Right after LifecycleNode.__init__: the lock, the flags, the callback groups."""
@@ -241,6 +241,14 @@ class AlwaysAnswers:
         if self._cover_inputs is None:
             return math.inf
         return self.cover_due_at() - self.now()
+
+    def hold_coast(self) -> None:
+        """Hold a coasting sample's command until the command in force has acted its sample_time: the instant its
+        plan assumed for the next input. At the tick it left command_latency early (the crane of docs/own_model.md,
+        0.12 s of a 0.2 s sample: its rope swung to 0.168 rad past the 0.15 bound after one sample without a state)."""
+        due = self._last_command_at + self.controller.settings.sample_time  # node clock
+        self.cover_due = due  # the late cover leaves this instant to the coast
+        self.timing.hold_until(time.perf_counter(), due - self.now())
 
     def on_late_check(self) -> None:
         """The late cover's check: a plan in force whose current input has acted its sample_time, and the running
