@@ -115,6 +115,23 @@ def test_the_law_corrects_a_state_off_the_prediction_to_second_order(name):
     assert np.max(np.abs(answered.u - searched.u)) < CORRECTED[name] * miss
 
 
+@pytest.mark.slow
+def test_a_state_the_law_refuses_is_answered_by_one_qp_as_the_search_would():
+    """A miss of 1e-2 (ten times the law's reach here): the law's move is refused (its active set changes or it is
+    infeasible to second order), and one QP on the linearisation at it (core/sample/feedback_qp.py) answers, no
+    solver call, with the command of a converged search at that state."""
+    reference = controller_of("live", False)
+    controller, _, x = prepared_controller("live", steps=4, beside=reference)
+    off = x + 1e-2 * np.array([1.0, -0.5]) / np.hypot(1.0, 0.5)
+    prepared = controller.prepared
+    searched = reference.step(off, [5.0])
+    answered = controller.step(off, [5.0])
+    assert answered.feedback is FeedbackOutcome.ANSWERED_QP and answered.answered
+    assert answered.solver_status == "feedback" and answered.iterations == 0 and str(answered.status) == "ok"
+    assert np.max(np.abs(prepared.plan.inputs[0] - searched.u)) > 1e-3  # the prepared command alone is off
+    assert np.max(np.abs(answered.u - searched.u)) < 1e-6  # measured 5.6e-9
+
+
 def test_a_new_target_or_a_far_state_is_searched():
     controller, plant, x = prepared_controller()
     changed = controller.step(x, [4.0])

@@ -31,7 +31,6 @@ from ..core.loop.metrics import max_abs_product, outputs, penetration, tracking
 from ..core.nlp import background
 from ..core.problem.regions import Region
 from ..core.sample.controller import NmpcController
-from ..core.sample.status import FeedbackOutcome
 from ..core.sample.step_result import StepResult
 from .main import ROBOT_ELLIPSES, VDP_ELLIPSES, machine
 
@@ -104,7 +103,7 @@ def run(scenario: tuple, progress: Callable[[str], None]) -> list[dict[str, Any]
         settings = timed[feedback].controller.settings
         model = timed[feedback].controller.model
         step_ms = np.array(timed[feedback].step_s) * 1e3
-        answered = np.array([r.feedback is FeedbackOutcome.ANSWERED for r in results])
+        answered = np.array([r.answered for r in results])
         y = outputs(model, run_.x, run_.u)
         outcomes: dict[str, int] = {}
         for r in results:

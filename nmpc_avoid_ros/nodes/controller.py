@@ -55,7 +55,6 @@ from ..core.errors import ConfigError, InputError, NmpcError, RegionError
 from ..core.loop.alarm import AvoidanceCheck
 from ..core.loop.certificate import CertificateSample, StabilityCertificate
 from ..core.sample.controller import NmpcController
-from ..core.sample.status import FeedbackOutcome
 from ..core.sample.step_result import StepResult
 from ..ros.conversions import array_to_vector, dds_stamp_age_ns
 from ..ros.markers import RegionStore
@@ -424,7 +423,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
         waited = self.timing.hold_until(started, hold)  # the instant the plan was predicted for
         self.send_command(*self.goal_command(result))  # the late cover's inputs; zeros while the goal holds
         latency = time.perf_counter() - started
-        self.timing.record(latency, waited, hold, self.cover_hold, result.feedback is FeedbackOutcome.ANSWERED)
+        self.timing.record(latency, waited, hold, self.cover_hold, result.answered)
         if compensate:
             self.controller.command_sent(self.state_time + self.state_age + latency + self.options.transport_delay)
         if result.is_fallback:

@@ -49,7 +49,6 @@ from .passage import Passage
 from .preparation import Preparation
 from .runtime_changes import RuntimeChanges
 from .search_phases import SearchPhases
-from .status import FeedbackOutcome
 from .step_result import StepResult, validate_vector
 
 #: what a step may take beyond NmpcController.sample_budget(), s: the fallback's simulations and the
@@ -234,7 +233,7 @@ class NmpcController(Preparation, SearchPhases, SampleAnswers, RuntimeChanges):
         carry = sample.carry
         carry.command, carry.last, carry.prepared = result.u.copy(), sample, None
         self.memory.advance(carry)
-        sample.settled = result.feedback is not FeedbackOutcome.ANSWERED
+        sample.settled = not result.answered
         if sample.settled:
             self._expect(sample)
         return result

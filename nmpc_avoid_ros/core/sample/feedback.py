@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +37,7 @@ from ..nlp.parts import command_index
 from ..nlp.search import VIOLATION_TOLERANCE, SearchReport
 from ..nlp.sensitivity import MULTIPLIER_TOLERANCE, FeedbackLaw, KktSensitivity
 from ..nlp.tracking import NlpBase
+from .feedback_qp import FeedbackQp, violation_function
 from .status import FeedbackOutcome
 from .step_result import Plan
 
@@ -96,6 +98,7 @@ class FeedbackLaws:
         self._sensitivity: dict[int, KktSensitivity] = {}
         self._answer: dict[int, _Answer] = {}
         self._cost_jacobian: dict[int, ca.Function] = {}
+        self._qp: dict[int, FeedbackQp] = {}  # where the law's active set changed: one QP (core/sample/feedback_qp.py)
         self._compiled_in, self._derivatives_in, self._background = compiled_in, derivatives_in, background
         for nlp in nlps:
             self._add(nlp)
@@ -130,6 +133,7 @@ class FeedbackLaws:
                                                                              ca.jacobian(terms, p)])
         serve_compiled(answer_function(nlp, followed), self._compiled_in, self._background,
                        functools.partial(self._install, id(nlp)), "the feedback law's answer")
+        self._qp[id(nlp)] = FeedbackQp(nlp)
         self._sensitivity[id(nlp)] = sensitivity
 
     def _install(self, key: int, answer: ca.Function) -> None:
@@ -159,10 +163,13 @@ class FeedbackLaws:
         return law
 
     def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float,
-               allowance: float = VIOLATION_TOLERANCE) -> tuple[Moved | None, FeedbackOutcome]:
+               allowance: float = VIOLATION_TOLERANCE, deadline: float = math.inf
+               ) -> tuple[Moved | None, FeedbackOutcome]:
         """The prepared plan moved to the parameters `par` of the sample that arrived (in the law NLP's layout), or
         None and why (the moved plan's slacks must be within `allowance`, as a searched plan's depth to be clear:
-        the sample's `depth_allowance`, core/nlp/search.py; inf: not checked). One compiled call."""
+        the sample's `depth_allowance`, core/nlp/search.py; inf: not checked). One compiled call; where the active
+        set changed, one QP on the prepared linearisation (`answered_qp`; its CPU time ends by `deadline`,
+        time.perf_counter s)."""
         law = prepared.law
         if law is None:
             return None, FeedbackOutcome.NO_LAW
@@ -172,13 +179,27 @@ class FeedbackLaws:
         w, others, step, slack, violation, x_a, u_a, costs = answer.call(par)
         if others[0] != 0.0:
             return None, FeedbackOutcome.INPUTS_CHANGED
+        tolerance = max(feasibility_tolerance, MOVED_PLAN_TOLERANCE)
         if law.multiplier.size and np.min(law.multiplier + law.multiplier_change @ step) < -MULTIPLIER_TOLERANCE:
-            return None, FeedbackOutcome.ACTIVE_SET_CHANGED
+            return self._qp_answer(prepared, w, par, tolerance, allowance, deadline, FeedbackOutcome.ACTIVE_SET_CHANGED)
         # the slacks bound every region row (s >= g), so feasible slacks within the tolerance keep it clear
-        if slack[0] > allowance or violation[0] > max(feasibility_tolerance, MOVED_PLAN_TOLERANCE):
-            return None, FeedbackOutcome.INFEASIBLE
+        if slack[0] > allowance or violation[0] > tolerance:
+            return self._qp_answer(prepared, w, par, tolerance, allowance, deadline, FeedbackOutcome.INFEASIBLE)
         return Moved(w.copy(), x_a.copy(), u_a.copy(), (float(costs[0]), float(costs[1]), float(costs[2]))), \
             FeedbackOutcome.ANSWERED
+
+
+    def _qp_answer(self, prepared: Prepared, start: np.ndarray, par: np.ndarray, tolerance: float, allowance: float,
+                   deadline: float, why: FeedbackOutcome) -> tuple[Moved | None, FeedbackOutcome]:
+        """Where the law's move `start` [n_w] is refused (`why`: its active set changed, or it is infeasible), one QP
+        on the linearisation at it (core/sample/feedback_qp.py), checked as the law's answer; else None, `why`."""
+        nlp = prepared.nlp
+        moved, violation, slack = self._qp[id(nlp)].step(start, par, deadline)
+        if moved is None or slack > allowance or violation > tolerance:
+            return None, why
+        x_a, u_a = self._qp[id(nlp)].steady(moved, par)
+        costs = tuple(float(c[0]) for c in nlp.terms(moved, par))
+        return Moved(moved, x_a, u_a, costs), FeedbackOutcome.ANSWERED_QP
 
 
 def answer_function(nlp: NlpBase, followed: np.ndarray) -> ca.Function:
@@ -200,7 +221,7 @@ def answer_function(nlp: NlpBase, followed: np.ndarray) -> ca.Function:
     slack = ca.mmax(w[slacks.tolist()]) if slacks.size else ca.SX(-np.inf)
     x_a, u_a = nlp.steady.function(w)
     moved_costs = costs + ca.mtimes(costs_by_w, w - ref_w) + ca.mtimes(costs_by_p, dp)
-    outputs = [w, other_change, step, slack, _violation_function(nlp)(w, par), x_a, u_a, moved_costs]
+    outputs = [w, other_change, step, slack, violation_function(nlp)(w, par), x_a, u_a, moved_costs]
     return ca.Function("feedback_answer", [par, ref_par, ref_w, dw, costs, costs_by_w, costs_by_p],
                        [ca.densify(out) for out in outputs])
 
@@ -219,14 +240,3 @@ class _Answer:
         for index, value in enumerate((law.par, law.w, law.dw, *law.costs), start=1):
             self.call.bind(index, value)
         self.law = law
-
-
-def _violation_function(nlp: NlpBase) -> ca.Function:
-    """(w, p) -> the largest violation of the NLP's constraints and bounds (0 if feasible), one CasADi call."""
-    w, p, g = nlp.problem["x"], nlp.problem["p"], nlp.problem["g"]
-    rows = []
-    for values, lower, upper in ((g, nlp.lbg, nlp.ubg), (w, nlp.lbx, nlp.ubx)):
-        low, high = np.flatnonzero(np.isfinite(lower)), np.flatnonzero(np.isfinite(upper))
-        rows += [ca.DM(lower[low]) - values[low.tolist()], values[high.tolist()] - ca.DM(upper[high])]
-    return ca.Function("violation", [w, p], [ca.mmax(ca.vertcat(*rows, 0))])
-

@@ -107,7 +107,7 @@ class Preparation:
             sample.feedback = FeedbackOutcome.INPUTS_CHANGED
             return None
         moved, outcome = self.feedback_laws.answer(prepared, par, s.feasibility_tolerance,
-                                                   sample.allowance if s.mu > 0 else math.inf) \
+                                                   sample.allowance if s.mu > 0 else math.inf, sample.deadline) \
             if sample.in_domain else (None, FeedbackOutcome.INFEASIBLE)
         sample.feedback = outcome
         if moved is None:

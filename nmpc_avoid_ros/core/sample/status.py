@@ -48,6 +48,8 @@ class FeedbackOutcome(StrEnum):
 
     #: the prepared plan, moved to the state that arrived, gave the command
     ANSWERED = "answered"
+    #: its law's active set changed, and one QP on the prepared linearisation moved it (core/sample/feedback_qp.py)
+    ANSWERED_QP = "answered_qp"
     #: the preparation's plan has no law (it penetrates a region, or its KKT conditions do not hold to the
     #: tolerance of core/nlp/sensitivity.py)
     NO_LAW = "no_law"
@@ -58,3 +60,8 @@ class FeedbackOutcome(StrEnum):
     #: the moved plan violates a constraint beyond feasibility_tolerance, or a slack beyond
     #: VIOLATION_TOLERANCE (the state is too far from the predicted one for the first-order law)
     INFEASIBLE = "infeasible"
+
+    @property
+    def answered(self) -> bool:
+        """The prepared plan gave the command (by its law, or by the QP): no search ran in the sample."""
+        return self in (FeedbackOutcome.ANSWERED, FeedbackOutcome.ANSWERED_QP)

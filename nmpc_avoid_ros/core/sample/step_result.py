@@ -107,6 +107,11 @@ class StepResult:
     def is_fallback(self) -> bool:
         return StepStatus(self.status).is_fallback
 
+    @property
+    def answered(self) -> bool:
+        """Its prepared plan gave the command (the law or the QP, core/sample/feedback.py): no search ran."""
+        return self.feedback is not None and self.feedback.answered
+
 
 @dataclass
 class Plan:
