@@ -1,42 +1,48 @@
-"""One QP where the feedback law does not hold because the active set changed (core/sample/feedback.py).
+"""One QP where the feedback law's move is refused (core/sample/feedback.py).
 
 The law is the tangential predictor on the prepared plan's active set; a miss of the predicted state by ~1e-3 on
-a region's boundary flips the penalty's slack rows, and the law refuses (`active_set_changed`). acados' real-time
-iteration answers such a state with one QP on the linearisation at its prepared iterate; so does this: at the
-prepared plan w̄ and the sample's parameters p,
+a region's boundary flips the penalty's slack rows and the law refuses (`active_set_changed`), and a larger miss
+leaves its move infeasible to second order (`infeasible`). acados' real-time iteration answers such a state with
+one QP on a linearisation; so does this, at the law's move w̃ and the sample's parameters p (an SQP step from
+the law's prediction):
 
-    min_d  1/2 d' (H_f + delta I) d + grad f(w̄, p)' d
-    s.t.   lbg - g(w̄, p) <= dg/dw(w̄, p) d <= ubg - g(w̄, p),   lbx - w̄ <= d <= ubx - w̄
+    min_d  1/2 d' H_f d + grad f(w̃, p)' d
+    s.t.   lbg - g(w̃, p) <= dg/dw(w̃, p) d <= ubg - g(w̃, p),   lbx - w̃ <= d <= ubx - w̃
 
 with H_f the cost's Hessian (positive semi-definite: a sum of squares and the slacks' quadratic penalty; the
-constraints' curvature dropped as on the SQP paths, core/nlp/gauss_newton.py) and delta a small regularisation.
-At p = p̄ its solution is d = 0 (w̄ is a KKT point: the QP's KKT conditions hold there with the plan's
-multipliers, whatever the Hessian), so it moves the plan only as far as the parameters moved. qpOASES (dense, its
-working set bounded by QP_WORKING_SET_CHANGES and its CPU time by the sample's deadline) solves it. The moved plan
-w̄ + d is checked on the nonlinear problem exactly as the law's answer is (feasible to the tolerance, slacks within
-the sample's allowance); where it is not, or the QP fails, the sample searches as before.
+constraints' curvature dropped as on the SQP paths, core/nlp/gauss_newton.py). At the prepared state the move is
+the prepared plan, a KKT point, and the QP leaves it there (its KKT conditions hold with the plan's multipliers,
+whatever the Hessian). qpOASES solves it within QP_WORKING_SET_CHANGES. The moved plan w̃ + d
+is checked on the nonlinear problem exactly as the law's answer is (feasible to the tolerance, slacks within the
+sample's allowance); where it is not, or the QP fails, the sample searches as before.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time as clock
+from collections.abc import Callable
 
 import casadi as ca
 import numpy as np
 
 from ..nlp.tracking import NlpBase
 
-#: the QP solver (a CasADi conic plugin): ProxQP's proximal iterations take the cost's semi-definite Hessian as it is
-#: (a state only the dynamics bind has no curvature); measured on the live van der Pol tier-0 QP (47 variables, 186
-#: rows): ProxQP 1.6-1.9 ms, qrqp 2.9, qpOASES 4-5 (and a banner on stdout at each construction), DAQP and OSQP failed
-QP_SOLVER = "proxqp"
-#: ProxQP's iterations per QP: the bound of its work whatever the parameters
-QP_MAX_ITERATIONS = 200
+#: the QP solver (a CasADi conic plugin) and its options. qpOASES with sparse matrices, measured (second calls) on the
+#: live van der Pol NLPs: tier 0 (47 variables, 186 rows) 0.3 ms, the passage NLP (219, 1333) 6.6 ms (dense 11.3);
+#: ProxQP 1.5 and 2000 ms, qrqp 2.9 ms and no solution in 1000 iterations, OSQP no solution in 4000 iterations
+QP_SOLVER = "qpoases"
+#: qpOASES' bound on one QP whatever the parameters: its working-set changes (nWSR; ~0.24 ms each on the passage
+#: NLP, which took 492 from a cold start: 118 ms). Its CPUtime option is not passed on by CasADi's interface (a QP
+#: set to 5 ms took 116): the changes are the bound
+QP_WORKING_SET_CHANGES = 100
+QP_OPTIONS = {"printLevel": "none", "sparse": True, "nWSR": QP_WORKING_SET_CHANGES, "error_on_fail": False}
 
 
 class FeedbackQp:
-    """The QP step of one NLP: its linearisation (one CasADi call) and its qpOASES solver, built once."""
+    """The QP step of one NLP: its linearisation (one CasADi call) and its QP solver, built once."""
 
     def __init__(self, nlp: NlpBase) -> None:
         w, p, f, g = nlp.problem["x"], nlp.problem["p"], nlp.problem["f"], nlp.problem["g"]
@@ -44,14 +50,15 @@ class FeedbackQp:
         jacobian = ca.jacobian(g, w)
         self._linearisation = ca.Function("feedback_qp_linearisation", [w, p],
                                           [hessian, ca.gradient(f, w), g, jacobian])
-        self._solver = ca.conic("feedback_qp", QP_SOLVER, {"h": hessian.sparsity(), "a": jacobian.sparsity()},
-                                {"error_on_fail": False, QP_SOLVER: {"max_iter": QP_MAX_ITERATIONS}})
+        self._solver = _quietly(lambda: ca.conic("feedback_qp", QP_SOLVER,
+                                                 {"h": hessian.sparsity(), "a": jacobian.sparsity()}, QP_OPTIONS))
         self._check = ca.Function("feedback_qp_check", [w, p], [violation_function(nlp)(w, p), *nlp.steady.function(w)])
         self._nlp = nlp
 
     def step(self, w: np.ndarray, par: np.ndarray, deadline: float) -> tuple[np.ndarray | None, float, float]:
         """(the plan w [n_w] moved by the QP at parameters par [n_p], or None where the QP failed; its largest
-        constraint violation; its largest slack). The QP's CPU time ends by `deadline` (time.perf_counter s)."""
+        constraint violation; its largest slack). Nothing is tried once `deadline` (time.perf_counter s) has passed;
+        the QP's work is bounded by QP_WORKING_SET_CHANGES."""
         left = deadline - clock.perf_counter()
         if left <= 0:
             return None, math.inf, math.inf
@@ -82,3 +89,17 @@ def violation_function(nlp: NlpBase) -> ca.Function:
         low, high = np.flatnonzero(np.isfinite(lower)), np.flatnonzero(np.isfinite(upper))
         rows += [ca.DM(lower[low]) - values[low.tolist()], values[high.tolist()] - ca.DM(upper[high])]
     return ca.Function("violation", [w, p], [ca.mmax(ca.vertcat(*rows, 0))])
+
+
+def _quietly(make: Callable[[], ca.Function]) -> ca.Function:
+    """make() with the process's standard output sent to /dev/null: qpOASES prints its copyright banner when a solver
+    is built (its printLevel applies only after), on every controller's start."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+            return make()
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
