@@ -160,6 +160,7 @@ class FeedbackLaws:
             # answer as much again: they integrate the sub-steps as the feasibility test does)
             law.costs = tuple(np.asarray(v) for v in self._cost_jacobian[id(nlp)](law.w, par))
             self._answer[id(nlp)].bind(law)
+            self._qp[id(nlp)].prime(law.w, par)  # the QP of a sample its law refuses starts from this plan's
         return law
 
     def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float,

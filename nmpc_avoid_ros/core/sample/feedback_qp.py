@@ -12,7 +12,7 @@ the law's prediction):
 with H_f the cost's Hessian (positive semi-definite: a sum of squares and the slacks' quadratic penalty; the
 constraints' curvature dropped as on the SQP paths, core/nlp/gauss_newton.py). At the prepared state the move is
 the prepared plan, a KKT point, and the QP leaves it there (its KKT conditions hold with the plan's multipliers,
-whatever the Hessian). qpOASES solves it within QP_WORKING_SET_CHANGES. The moved plan w̃ + d
+whatever the Hessian). qpOASES solves it, hot from the prepared plan's own QP (`prime`). The moved plan w̃ + d
 is checked on the nonlinear problem exactly as the law's answer is (feasible to the tolerance, slacks within the
 sample's allowance); where it is not, or the QP fails, the sample searches as before.
 """
@@ -34,11 +34,13 @@ from ..nlp.tracking import NlpBase
 #: live van der Pol NLPs: tier 0 (47 variables, 186 rows) 0.3 ms, the passage NLP (219, 1333) 6.6 ms (dense 11.3);
 #: ProxQP 1.5 and 2000 ms, qrqp 2.9 ms and no solution in 1000 iterations, OSQP no solution in 4000 iterations
 QP_SOLVER = "qpoases"
-#: qpOASES' bound on one QP whatever the parameters: its working-set changes (nWSR; ~0.24 ms each on the passage
-#: NLP, which took 492 from a cold start: 118 ms). Its CPUtime option is not passed on by CasADi's interface (a QP
-#: set to 5 ms took 116): the changes are the bound
-QP_WORKING_SET_CHANGES = 100
-QP_OPTIONS = {"printLevel": "none", "sparse": True, "nWSR": QP_WORKING_SET_CHANGES, "error_on_fail": False}
+#: qpOASES' bound on one QP whatever the parameters: its working-set changes (nWSR) per variable of the NLP. From a
+#: cold start it adds the active rows one at a time (the passage NLP: 492 changes for 219 variables, 118 ms; tier 0:
+#: 151 for 47), so each prepared plan's own QP is solved in the preparation (`prime`), and the sample's QP starts hot
+#: from that working set (measured: 0-1 changes, 0.4 ms on tier 0, 6.9 ms on the passage NLP). Its CPUtime option
+#: is not passed on by CasADi's interface (a QP set to 5 ms took 116): the changes are the bound
+WORKING_SET_CHANGES_PER_VARIABLE = 5
+QP_OPTIONS = {"printLevel": "none", "sparse": True, "error_on_fail": False}
 
 
 class FeedbackQp:
@@ -50,28 +52,39 @@ class FeedbackQp:
         jacobian = ca.jacobian(g, w)
         self._linearisation = ca.Function("feedback_qp_linearisation", [w, p],
                                           [hessian, ca.gradient(f, w), g, jacobian])
-        self._solver = _quietly(lambda: ca.conic("feedback_qp", QP_SOLVER,
-                                                 {"h": hessian.sparsity(), "a": jacobian.sparsity()}, QP_OPTIONS))
+        self._solver = _quietly(lambda: ca.conic("feedback_qp", QP_SOLVER, {"h": hessian.sparsity(),
+                                                 "a": jacobian.sparsity()},
+                                                 {**QP_OPTIONS, "nWSR": WORKING_SET_CHANGES_PER_VARIABLE * w.numel()}))
         self._check = ca.Function("feedback_qp_check", [w, p], [violation_function(nlp)(w, p), *nlp.steady.function(w)])
         self._nlp = nlp
+
+    def prime(self, w: np.ndarray, par: np.ndarray) -> None:
+        """In the preparation: solve the QP at the prepared plan w [n_w] and its parameters par [n_p] (no move: a KKT
+        point), so that the sample's QP starts from its working set (qpOASES hot-starts from its last call's)."""
+        self._solve(w, par)
+
+    def _solve(self, w: np.ndarray, par: np.ndarray) -> np.ndarray | None:
+        """The QP's step d [n_w] at (w, par), None where qpOASES failed."""
+        nlp = self._nlp
+        hessian, gradient, g, jacobian = self._linearisation(w, par)
+        g = np.asarray(g).ravel()
+        solution = self._solver(h=hessian, g=gradient, a=jacobian, lba=nlp.lbg - g, uba=nlp.ubg - g,
+                                lbx=nlp.lbx - w, ubx=nlp.ubx - w)
+        return np.asarray(solution["x"]).ravel() if self._solver.stats()["success"] else None
 
     def step(self, w: np.ndarray, par: np.ndarray, deadline: float) -> tuple[np.ndarray | None, float, float]:
         """(the plan w [n_w] moved by the QP at parameters par [n_p], or None where the QP failed; its largest
         constraint violation; its largest slack). Nothing is tried once `deadline` (time.perf_counter s) has passed;
-        the QP's work is bounded by QP_WORKING_SET_CHANGES."""
+        the QP's work is bounded by WORKING_SET_CHANGES_PER_VARIABLE."""
         left = deadline - clock.perf_counter()
         if left <= 0:
             return None, math.inf, math.inf
-        nlp = self._nlp
-        hessian, gradient, g, jacobian = self._linearisation(w, par)
-        solution = self._solver(h=hessian, g=gradient, a=jacobian,
-                                lba=nlp.lbg - np.asarray(g).ravel(), uba=nlp.ubg - np.asarray(g).ravel(),
-                                lbx=nlp.lbx - w, ubx=nlp.ubx - w)
-        if not self._solver.stats()["success"]:
+        d = self._solve(w, par)
+        if d is None:
             return None, math.inf, math.inf
-        moved = w + np.asarray(solution["x"]).ravel()
+        moved = w + d
         violation = float(self._check(moved, par)[0])
-        slacks = nlp._slack_index
+        slacks = self._nlp._slack_index
         slack = float(np.max(moved[slacks])) if slacks.size else -math.inf
         return moved, violation, slack
 
