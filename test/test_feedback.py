@@ -121,7 +121,7 @@ def test_a_state_the_law_refuses_is_answered_by_one_qp_as_the_search_would():
     infeasible to second order), and one QP on the linearisation at it (core/sample/feedback_qp.py) answers, no
     solver call, with the command of a converged search at that state."""
     reference = controller_of("live", False)
-    controller, _, x = prepared_controller("live", steps=4, beside=reference)
+    controller, _, x = prepared_controller("live", steps=4, beside=reference, feedback_qp=True)
     off = x + 1e-2 * np.array([1.0, -0.5]) / np.hypot(1.0, 0.5)
     prepared = controller.prepared
     searched = reference.step(off, [5.0])
@@ -130,6 +130,11 @@ def test_a_state_the_law_refuses_is_answered_by_one_qp_as_the_search_would():
     assert answered.solver_status == "feedback" and answered.iterations == 0 and str(answered.status) == "ok"
     assert np.max(np.abs(prepared.plan.inputs[0] - searched.u)) > 1e-3  # the prepared command alone is off
     assert np.max(np.abs(answered.u - searched.u)) < 1e-6  # measured 5.6e-9
+    without, _, x_without = prepared_controller("live", steps=4, feedback_qp=False)
+    assert np.array_equal(x_without, x)
+    refused = without.step(off, [5.0])  # the setting off: the sample searches
+    assert refused.feedback in (FeedbackOutcome.INFEASIBLE, FeedbackOutcome.ACTIVE_SET_CHANGED)
+    assert refused.search.tried and np.max(np.abs(refused.u - searched.u)) < 1e-6
 
 
 def test_a_new_target_or_a_far_state_is_searched():

@@ -133,7 +133,8 @@ class FeedbackLaws:
                                                                              ca.jacobian(terms, p)])
         serve_compiled(answer_function(nlp, followed), self._compiled_in, self._background,
                        functools.partial(self._install, id(nlp)), "the feedback law's answer")
-        self._qp[id(nlp)] = FeedbackQp(nlp)
+        if nlp.settings.feedback_qp:
+            self._qp[id(nlp)] = FeedbackQp(nlp)
         self._sensitivity[id(nlp)] = sensitivity
 
     def _install(self, key: int, answer: ca.Function) -> None:
@@ -160,7 +161,8 @@ class FeedbackLaws:
             # answer as much again: they integrate the sub-steps as the feasibility test does)
             law.costs = tuple(np.asarray(v) for v in self._cost_jacobian[id(nlp)](law.w, par))
             self._answer[id(nlp)].bind(law)
-            self._qp[id(nlp)].prime(law.w, par)  # the QP of a sample its law refuses starts from this plan's
+            if id(nlp) in self._qp:  # the QP of a sample its law refuses starts from this plan's
+                self._qp[id(nlp)].prime(law.w, par)
         return law
 
     def answer(self, prepared: Prepared, par: np.ndarray, feasibility_tolerance: float,
@@ -195,6 +197,8 @@ class FeedbackLaws:
         """Where the law's move `start` [n_w] is refused (`why`: its active set changed, or it is infeasible), one QP
         on the linearisation at it (core/sample/feedback_qp.py), checked as the law's answer; else None, `why`."""
         nlp = prepared.nlp
+        if id(nlp) not in self._qp:  # the setting feedback_qp off
+            return None, why
         moved, violation, slack = self._qp[id(nlp)].step(start, par, deadline)
         if moved is None or slack > allowance or violation > tolerance:
             return None, why
