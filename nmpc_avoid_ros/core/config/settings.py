@@ -170,12 +170,8 @@ class ControllerSettings:
                "the next sample's problem solved ahead for the predicted state, and the command from its first-order "
                "feedback law when the state arrives, no solver call (core/sample/feedback.py); the sample searches as "
                "before where the law does not hold. False: every sample searches")
-    feedback_qp: bool = setting(
-        False, "with `feedback`: where the law's move is refused (its active set changed, or it is infeasible), one QP "
-               "on the linearisation at that move (qpOASES, hot from the prepared plan's own QP, solved in the "
-               "preparation) answers if it passes the law's checks (core/sample/feedback_qp.py), else the sample "
-               "searches. Its cold start in the preparation grows with the NLP (the robot's 40-sample passage NLP: "
-               "seconds): for NLPs of a few hundred variables")
+    feedback_qp: bool = setting(False, "with `feedback`: where the law's move is refused, one QP on its "
+                                "linearisation answers if it passes the law's checks (core/sample/feedback_qp.py)")
     feasibility_tolerance: float = setting(1e-6, "a budget-cut iterate is applied only if its constraint violation "
                                                  "is below this", runtime=True, low=0.0, low_open=True)
     region_margin: float = setting(
