@@ -56,12 +56,14 @@ def test_leave_runs_the_exit_handlers_removes_the_scratch_and_ends_with_the_code
 @pytest.mark.dds
 @pytest.mark.slow
 def test_a_controller_stopped_while_its_passage_law_is_built_exits_0_within_the_wait(ros_graph, tmp_path):
-    """The robot's live config (its 40-sample passage NLP) on an empty cache: that NLP's feedback law is built by a
+    """The robot's live config with a 40-sample passage NLP, on an empty cache: that NLP's feedback law is built by a
     thread for ~14 s after the controller is active; SIGINT then (a user's Ctrl-C) ends the process with 0."""
     _, _, start, _ = ros_graph
-    config = ROOT / "config" / "mobile_robot_live.yaml"
-    assert "    escape_horizon: 40\n" in config.read_text()
-    ctrl = start("controller", "--ros-args", "--params-file", str(config), "-p", f"cache_dir:={tmp_path / 'cache'}")
+    config = (ROOT / "config" / "mobile_robot_live.yaml").read_text()
+    assert config.count("    horizon: 20\n") == 1 and "escape_horizon" not in config
+    params = tmp_path / "robot40.yaml"
+    params.write_text(config.replace("    horizon: 20\n", "    horizon: 20\n    escape_horizon: 40\n"))
+    ctrl = start("controller", "--ros-args", "--params-file", str(params), "-p", f"cache_dir:={tmp_path / 'cache'}")
     deadline = time.monotonic() + 90
     while "controller active" not in ctrl.output() and time.monotonic() < deadline:
         assert ctrl.alive(), ctrl.output()
