@@ -390,8 +390,7 @@ class ControllerNode(GoalKeeping, JudgedInputs, AlwaysAnswers, LifecycleNode):
             self.publish_certificate(self.certificate.skip("no new state"))
             if result is not None:
                 self.last_result = result
-                self.hold_coast()
-                self.send_command(*self.goal_command(result))  # zeros while the goal holds
+                self.send_coast(*self.goal_command(result))  # zeros while the goal holds
                 self.publish_diagnostics(DiagnosticStatus.WARN, "no new state: next input of the last plan",
                                          result, 0.0)
                 return

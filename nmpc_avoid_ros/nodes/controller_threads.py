@@ -242,13 +242,19 @@ class AlwaysAnswers:
             return math.inf
         return self.cover_due_at() - self.now()
 
-    def hold_coast(self) -> None:
-        """Hold a coasting sample's command until the command in force has acted its sample_time: the instant its
-        plan assumed for the next input. At the tick it left command_latency early (the crane of docs/own_model.md,
-        0.12 s of a 0.2 s sample: its rope swung to 0.168 rad past the 0.15 bound after one sample without a state)."""
+    def send_coast(self, u: np.ndarray, next_inputs: np.ndarray | None) -> None:
+        """A coasting sample's command (`send_command`'s arguments), held until the command in force has acted its
+        sample_time: the instant its plan assumed for the next input. At the tick it left command_latency early (the
+        crane of docs/own_model.md, 0.12 s of a 0.2 s sample: its rope swung to 0.168 rad past the 0.15 bound after
+        one sample without a state). The late cover waits meanwhile (a hold that woke 3 ms late let it publish the
+        same input first: two commands in one sample)."""
         due = self._last_command_at + self.controller.settings.sample_time  # node clock
-        self.cover_due = due  # the late cover leaves this instant to the coast
-        self.timing.hold_until(time.perf_counter(), due - self.now())
+        self.cover_due = math.inf
+        try:
+            self.timing.hold_until(time.perf_counter(), due - self.now())
+            self.send_command(u, next_inputs)
+        finally:
+            self.cover_due = due
 
     def on_late_check(self) -> None:
         """The late cover's check: a plan in force whose current input has acted its sample_time, and the running
