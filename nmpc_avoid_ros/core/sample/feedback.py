@@ -98,7 +98,7 @@ class FeedbackLaws:
         self._sensitivity: dict[int, KktSensitivity] = {}
         self._answer: dict[int, _Answer] = {}
         self._cost_jacobian: dict[int, ca.Function] = {}
-        self._qp: dict[int, FeedbackQp] = {}  # where the law's active set changed: one QP (core/sample/feedback_qp.py)
+        self._qp: dict[int, FeedbackQp] = {}  # where the law's move is refused: one QP (core/sample/feedback_qp.py)
         self._compiled_in, self._derivatives_in, self._background = compiled_in, derivatives_in, background
         for nlp in nlps:
             self._add(nlp)
@@ -170,9 +170,9 @@ class FeedbackLaws:
                ) -> tuple[Moved | None, FeedbackOutcome]:
         """The prepared plan moved to the parameters `par` of the sample that arrived (in the law NLP's layout), or
         None and why (the moved plan's slacks must be within `allowance`, as a searched plan's depth to be clear:
-        the sample's `depth_allowance`, core/nlp/search.py; inf: not checked). One compiled call; where the active
-        set changed, one QP on the prepared linearisation (`answered_qp`; its CPU time ends by `deadline`,
-        time.perf_counter s)."""
+        the sample's `depth_allowance`, core/nlp/search.py; inf: not checked). One compiled call; where the law's
+        move is refused, one QP on its linearisation with the setting feedback_qp (`answered_qp`; not tried once
+        `deadline`, time.perf_counter s, has passed)."""
         law = prepared.law
         if law is None:
             return None, FeedbackOutcome.NO_LAW
@@ -191,20 +191,17 @@ class FeedbackLaws:
         return Moved(w.copy(), x_a.copy(), u_a.copy(), (float(costs[0]), float(costs[1]), float(costs[2]))), \
             FeedbackOutcome.ANSWERED
 
-
     def _qp_answer(self, prepared: Prepared, start: np.ndarray, par: np.ndarray, tolerance: float, allowance: float,
                    deadline: float, why: FeedbackOutcome) -> tuple[Moved | None, FeedbackOutcome]:
         """Where the law's move `start` [n_w] is refused (`why`: its active set changed, or it is infeasible), one QP
         on the linearisation at it (core/sample/feedback_qp.py), checked as the law's answer; else None, `why`."""
         nlp = prepared.nlp
-        if id(nlp) not in self._qp:  # the setting feedback_qp off
+        qp = self._qp.get(id(nlp))  # None: the setting feedback_qp off
+        moved = None if qp is None else qp.step(start, par, deadline)
+        if moved is None or moved.slack > allowance or moved.violation > tolerance:
             return None, why
-        moved, violation, slack = self._qp[id(nlp)].step(start, par, deadline)
-        if moved is None or slack > allowance or violation > tolerance:
-            return None, why
-        x_a, u_a = self._qp[id(nlp)].steady(moved, par)
-        costs = tuple(float(c[0]) for c in nlp.terms(moved, par))
-        return Moved(moved, x_a, u_a, costs), FeedbackOutcome.ANSWERED_QP
+        costs = tuple(float(c[0]) for c in nlp.terms(moved.w, par))
+        return Moved(moved.w, moved.x_a, moved.u_a, costs), FeedbackOutcome.ANSWERED_QP
 
 
 def answer_function(nlp: NlpBase, followed: np.ndarray) -> ca.Function:

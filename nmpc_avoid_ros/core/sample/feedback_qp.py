@@ -24,6 +24,7 @@ import os
 import sys
 import time as clock
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -72,26 +73,31 @@ class FeedbackQp:
                                 lbx=nlp.lbx - w, ubx=nlp.ubx - w)
         return np.asarray(solution["x"]).ravel() if self._solver.stats()["success"] else None
 
-    def step(self, w: np.ndarray, par: np.ndarray, deadline: float) -> tuple[np.ndarray | None, float, float]:
-        """(the plan w [n_w] moved by the QP at parameters par [n_p], or None where the QP failed; its largest
-        constraint violation; its largest slack). Nothing is tried once `deadline` (time.perf_counter s) has passed;
-        the QP's work is bounded by WORKING_SET_CHANGES_PER_VARIABLE."""
-        left = deadline - clock.perf_counter()
-        if left <= 0:
-            return None, math.inf, math.inf
+    def step(self, w: np.ndarray, par: np.ndarray, deadline: float) -> QpStep | None:
+        """The plan w [n_w] moved by the QP at parameters par [n_p], checked; None where the QP failed. Nothing is
+        tried once `deadline` (time.perf_counter s) has passed; the QP's work is bounded by
+        WORKING_SET_CHANGES_PER_VARIABLE."""
+        if deadline - clock.perf_counter() <= 0:
+            return None
         d = self._solve(w, par)
         if d is None:
-            return None, math.inf, math.inf
+            return None
         moved = w + d
-        violation = float(self._check(moved, par)[0])
+        violation, x_a, u_a = self._check(moved, par)
         slacks = self._nlp._slack_index
         slack = float(np.max(moved[slacks])) if slacks.size else -math.inf
-        return moved, violation, slack
+        return QpStep(moved, float(violation), slack, np.asarray(x_a).ravel(), np.asarray(u_a).ravel())
 
-    def steady(self, w: np.ndarray, par: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """x_a [n], u_a [m] of the plan w."""
-        _, x_a, u_a = self._check(w, par)
-        return np.asarray(x_a).ravel(), np.asarray(u_a).ravel()
+
+@dataclass
+class QpStep:
+    """A plan moved by the QP: w [n_w], its largest constraint violation and slack, and its x_a [n], u_a [m]."""
+
+    w: np.ndarray
+    violation: float
+    slack: float
+    x_a: np.ndarray
+    u_a: np.ndarray
 
 
 def violation_function(nlp: NlpBase) -> ca.Function:
