@@ -4,8 +4,8 @@ CasADi releases the interpreter lock inside its long calls, so a daemon thread m
 interpreter finalises at exit, and the process dies of SIGSEGV (measured: a controller of the robot's live config
 with a 40-sample passage NLP, stopped while that NLP's feedback law was being built, exited 139 instead of 0). These
 threads are not daemons, so a process ends after them (their work is finite: seconds). A node does not wait that long
-for a cache (the 40-sample law: 14 s): `leave` waits a moment, then runs the exit handlers and ends the process
-without finalising the interpreter.
+for a cache (the 40-sample law: 14 s): it waits a moment (`wait_native`), then `leave` runs the exit handlers and
+ends the process without finalising the interpreter.
 """
 
 from __future__ import annotations
